@@ -1,0 +1,78 @@
+"""The `bati` command line: one subcommand per verb (tyro over dataclasses, rich output)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+
+import tyro
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+console = Console()
+
+
+class UserError(Exception):
+    """An error caused by the user's input: printed without a traceback, exit code 2."""
+
+
+@dataclass
+class Envs:
+    """List the task families with their task spaces; with --family and --task, try one episode."""
+
+    family: str | None = None
+    """Show only this family (and, with --task, run one random-action episode in it)."""
+    task: tuple[float, ...] | None = None
+    """A task of the family, e.g. `--task 1.5` or `--task 0.6 0.8` for PointGoal."""
+    noise: float | None = None
+    """Per-step noise eps (default: the family's)."""
+
+    def run(self) -> None:
+        from bati.envs import FAMILY_NAMES, get_family
+
+        names = [self.family] if self.family else list(FAMILY_NAMES)
+        families = [get_family(name) for name in names]
+        table = Table(title="bati task families")
+        table.add_column("family", no_wrap=True)
+        table.add_column("gymnasium id", no_wrap=True)
+        for column in ("tasks differ in", "task space", "default eps"):
+            table.add_column(column)
+        for f in families:
+            table.add_row(f.name, f.env_id, f.kind, escape(f.task_space), f"{f.default_noise:g}")
+        console.print(table)
+        if self.task is None:
+            return
+        family = families[0]
+        task = self.task[0] if len(self.task) == 1 else list(self.task)
+        env = family.make_env(task, self.noise)
+        env.reset(seed=0)
+        start, total, steps = time.perf_counter(), 0.0, 0
+        done = False
+        while not done:
+            _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+            total, steps, done = total + reward, steps + 1, terminated or truncated
+        console.print(
+            f"{family.name} task={task} eps={env.unwrapped.noise:g}: random-action return {total:.1f} "
+            f"over {steps} steps ({1e3 * (time.perf_counter() - start):.0f} ms)"
+        )
+
+
+COMMANDS = {"envs": Envs}
+
+
+def main(argv: list[str] | None = None) -> int:
+    from bati.envs import TaskError
+
+    command = tyro.extras.subcommand_cli_from_dict(COMMANDS, args=argv, prog="bati")
+    try:
+        command.run()
+    except (UserError, TaskError, FileNotFoundError) as err:
+        console.print(f"[bold red]error:[/] {err}")
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

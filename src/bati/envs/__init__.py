@@ -1,0 +1,55 @@
+"""The paper's task families, registered with gymnasium as ``bati/<Name>-v0``.
+
+>>> family = get_family("HalfCheetahVel")
+>>> tasks = family.sample_tasks(20, seed=0)
+>>> env = gymnasium.make("bati/HalfCheetahVel-v0", task=tasks[0], noise=0.5)
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+
+from bati.envs.base import EPISODE_LENGTH, Task, TaskError, TaskFamily
+
+# family name -> (module, family class, env class); modules are imported lazily so that
+# `import bati.envs` stays cheap and PointGoal works without loading MuJoCo.
+_FAMILIES = {
+    "AntDir": ("bati.envs.ant_dir", "AntDirFamily", "AntDirEnv"),
+    "HalfCheetahVel": ("bati.envs.half_cheetah", "HalfCheetahVelFamily", "HalfCheetahVelEnv"),
+    "HalfCheetahDir": ("bati.envs.half_cheetah", "HalfCheetahDirFamily", "HalfCheetahDirEnv"),
+    "HopperParam": ("bati.envs.hopper_param", "HopperParamFamily", "HopperParamEnv"),
+    "WalkerParam": ("bati.envs.walker_param", "WalkerParamFamily", "WalkerParamEnv"),
+    "PointGoal": ("bati.envs.point", "PointGoalFamily", "PointGoalEnv"),
+}
+FAMILY_NAMES = tuple(_FAMILIES)
+
+
+def _check_name(name: str) -> None:
+    if name not in _FAMILIES:
+        raise TaskError(f"unknown task family {name!r}; choose one of: {', '.join(FAMILY_NAMES)}")
+
+
+def get_family(name: str) -> TaskFamily:
+    """The task family called `name` (one of FAMILY_NAMES)."""
+    import importlib
+
+    _check_name(name)
+    module, family_class, _ = _FAMILIES[name]
+    return getattr(importlib.import_module(module), family_class)()
+
+
+def make_env(name: str, task: Task, noise: float | None = None, **kwargs) -> gym.Env:
+    """Shortcut for ``get_family(name).make_env(task, noise)``."""
+    return get_family(name).make_env(task, noise, **kwargs)
+
+
+def _register() -> None:
+    for name, (module, _, env_class) in _FAMILIES.items():
+        env_id = f"bati/{name}-v0"
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=f"{module}:{env_class}", max_episode_steps=EPISODE_LENGTH)
+
+
+_register()
+
+__all__ = ["EPISODE_LENGTH", "FAMILY_NAMES", "Task", "TaskError", "TaskFamily", "get_family", "make_env"]

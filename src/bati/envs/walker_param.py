@@ -1,0 +1,13 @@
+"""WalkerParam: the 2-D walker moves forward under a task-specific friction and action map."""
+
+from gymnasium.envs.mujoco.walker2d_v5 import Walker2dEnv
+
+from bati.envs.friction_param import LogFrictionEnvMixin, LogFrictionFamily
+
+
+class WalkerParamFamily(LogFrictionFamily):
+    name = "WalkerParam"
+
+
+class WalkerParamEnv(LogFrictionEnvMixin, Walker2dEnv):
+    family = WalkerParamFamily()
