@@ -5,6 +5,8 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Union
 
 import tyro
 from rich.console import Console
@@ -12,6 +14,8 @@ from rich.markup import escape
 from rich.table import Table
 
 console = Console()
+# Errors go to stderr on one line, whatever the terminal width (soft_wrap: no hard line breaks).
+error_console = Console(stderr=True, soft_wrap=True)
 
 
 class UserError(Exception):
@@ -59,17 +63,74 @@ class Envs:
         )
 
 
-COMMANDS = {"envs": Envs}
+@dataclass
+class ExpertsTrain:
+    """Train a family's task-conditioned SAC expert (checkpoints; re-running resumes)."""
+
+    family: str
+    total_steps: int | None = None
+    """Environment transitions (default: the family's, see bati.experts.train.DEFAULT_STEPS)."""
+    seed: int = 0
+    updates_per_step: float = 0.5
+    out_dir: Path | None = None
+    """Run directory (default runs/experts/<family>)."""
+    export_dir: Path | None = None
+    """Where to export the finished expert (default: the package zoo)."""
+
+    def run(self) -> None:
+        from bati.experts.train import ExpertTrainConfig, train_expert
+
+        config = ExpertTrainConfig(self.family, self.total_steps, seed=self.seed, out_dir=self.out_dir,
+                                   updates_per_step=self.updates_per_step, export_dir=self.export_dir)
+        out = train_expert(config)
+        console.print(f"expert run in {out}; exported to {self.export_dir or 'the package zoo'}")
+
+
+@dataclass
+class ExpertsCard:
+    """Evaluate a shipped expert on the 20 train / 20 test tasks and write its card."""
+
+    family: str
+    seed: int = 0
+    """Seed of the train/test task split (the same as `bati data collect --seed`)."""
+    zoo_dir: Path | None = None
+
+    def run(self) -> None:
+        from bati.experts.card import write_card
+
+        card = write_card(self.family, self.seed, self.zoo_dir)
+        console.print(card["summary"])
+
+
+def group(**commands):
+    """A dataclass type whose single field selects one of `commands` (nested subcommands)."""
+    options = tuple(Annotated[cls, tyro.conf.subcommand(name)] for name, cls in commands.items())
+    return Annotated[Union[options], tyro.conf.arg(name="")]
+
+
+@dataclass
+class Experts:
+    """Expert (context-collection) policies."""
+
+    command: group(train=ExpertsTrain, card=ExpertsCard)
+
+    def run(self) -> None:
+        self.command.run()
+
+
+COMMANDS = {"envs": Envs, "experts": Experts}
 
 
 def main(argv: list[str] | None = None) -> int:
     from bati.envs import TaskError
 
-    command = tyro.extras.subcommand_cli_from_dict(COMMANDS, args=argv, prog="bati")
+    command = tyro.extras.subcommand_cli_from_dict(
+        COMMANDS, args=argv, prog="bati", config=(tyro.conf.OmitSubcommandPrefixes,)
+    )
     try:
         command.run()
-    except (UserError, TaskError, FileNotFoundError) as err:
-        console.print(f"[bold red]error:[/] {err}")
+    except (UserError, TaskError, FileNotFoundError, ValueError) as err:
+        error_console.print(f"[bold red]error:[/] {escape(str(err))}")
         return 2
     return 0
 

@@ -66,6 +66,23 @@ class TaskFamily(abc.ABC):
         rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
         return [self.validate_task(t) for t in self._sample(n, rng)]
 
+    def split_tasks(self, seed: int, n_train: int = 20, n_test: int = 20) -> tuple[list[Task], list[Task]]:
+        """The training and test tasks of Sec. 5.1, drawn together from one seed.
+
+        Continuous task spaces give disjoint sets (with probability 1); HalfCheetahDir has only
+        two tasks, so its 20 + 20 draws repeat them, as in the paper.
+        """
+        tasks = self.sample_tasks(n_train + n_test, seed)
+        return tasks[:n_train], tasks[n_train:]
+
+    def most_different(self, task: Task, candidates: Sequence[Task]) -> int:
+        """Index of the candidate farthest from `task` (App. C.2 distance; first on ties)."""
+        return int(np.argmax([self.distance(task, c) for c in candidates]))
+
+    def most_similar(self, task: Task, candidates: Sequence[Task]) -> int:
+        """Index of the candidate closest to `task` (first on ties)."""
+        return int(np.argmin([self.distance(task, c) for c in candidates]))
+
     def validate_task(self, task: Task) -> Task:
         try:
             return self._check(task)
@@ -114,5 +131,9 @@ class TaskEnvMixin:
     family: TaskFamily
 
     def _set_task(self, task: Task, noise: float | None) -> None:
-        self.task = self.family.validate_task(task)
+        self.set_task(task)
         self.noise = self.family.validate_noise(noise)
+
+    def set_task(self, task: Task) -> None:
+        """Switch the env to another task of its family (takes effect at the next step)."""
+        self.task = self.family.validate_task(task)

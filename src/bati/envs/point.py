@@ -48,7 +48,6 @@ class PointGoalEnv(TaskEnvMixin, gym.Env):
 
     def __init__(self, task, noise: float | None = None):
         self._set_task(task, noise)
-        self._goal = np.asarray(self.task, dtype=np.float64)
         self.observation_space = gym.spaces.Box(-POSITION_BOUND, POSITION_BOUND, (2,), np.float64)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
         self._position = np.zeros(2)
@@ -61,8 +60,9 @@ class PointGoalEnv(TaskEnvMixin, gym.Env):
     def step(self, action):
         action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
         self._position = np.clip(self._position + STEP_SIZE * action, -POSITION_BOUND, POSITION_BOUND)
-        noisy_goal = self._goal + self.noise * self.np_random.standard_normal(2)
+        goal = np.asarray(self.task)
+        noisy_goal = goal + self.noise * self.np_random.standard_normal(2)
         reward = -float(np.linalg.norm(self._position - noisy_goal))
-        noise_free = -float(np.linalg.norm(self._position - self._goal))
+        noise_free = -float(np.linalg.norm(self._position - goal))
         info = {"reward_noise_free": noise_free, "task_used": noisy_goal.tolist()}
         return self._position.copy(), reward, False, False, info

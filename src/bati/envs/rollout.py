@@ -1,0 +1,64 @@
+"""Lockstep rollouts: one episode in each of N tasks, one batched policy call per step."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import numpy as np
+
+from bati.envs.base import EPISODE_LENGTH, Task, TaskFamily
+
+# act(observations (N, obs_dim), step) -> actions (N, act_dim)
+ActFn = Callable[[np.ndarray, int], np.ndarray]
+
+
+@dataclass
+class Episodes:
+    """N episodes of equal length T stepped in lockstep (arrays are (N, T, ...))."""
+
+    observations: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    next_observations: np.ndarray
+    noise_free_rewards: np.ndarray
+    tasks_used: np.ndarray  # the per-step noisy task the reward / dynamics used
+
+    @property
+    def returns(self) -> np.ndarray:
+        return self.rewards.sum(axis=1)
+
+    @property
+    def noise_free_returns(self) -> np.ndarray:
+        return self.noise_free_rewards.sum(axis=1)
+
+
+def rollout(
+    family: TaskFamily,
+    tasks: Sequence[Task],
+    act: ActFn,
+    noise: float | None,
+    seed: int,
+    length: int = EPISODE_LENGTH,
+) -> Episodes:
+    """Roll out `act` for one episode in each task (env i is reset with seed + i)."""
+    envs = [family.make_env(task, noise) for task in tasks]
+    observations = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)])
+    record: dict[str, list] = {k: [] for k in ("obs", "act", "rew", "next", "free", "used")}
+    for step in range(length):
+        actions = np.asarray(act(observations, step), dtype=np.float32)
+        results = [env.step(a) for env, a in zip(envs, actions)]
+        next_observations = np.stack([r[0] for r in results])
+        record["obs"].append(observations)
+        record["act"].append(actions)
+        record["rew"].append([r[1] for r in results])
+        record["next"].append(next_observations)
+        record["free"].append([r[4]["reward_noise_free"] for r in results])
+        record["used"].append([np.ravel(r[4]["task_used"]) for r in results])
+        observations = next_observations
+    for env in envs:
+        env.close()
+    stack = {k: np.swapaxes(np.asarray(v, dtype=np.float32), 0, 1) for k, v in record.items()}
+    return Episodes(
+        stack["obs"], stack["act"], stack["rew"], stack["next"], stack["free"], stack["used"]
+    )

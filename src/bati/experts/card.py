@@ -1,0 +1,123 @@
+"""An expert's card: its returns on the 20 training and 20 test tasks, and how task-specific it is.
+
+The returns of the expert for M in M (with the family's default eps) are the paper's
+"Oracle (Pre-IQL)" row. The task-specificity gap compares, on each test task M, the expert for
+M with the expert for the most different training task (the p_test context collector of Eq. 10).
+"""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from bati.envs import get_family
+from bati.envs.rollout import Episodes, rollout
+from bati.experts.zoo import ZOO_DIR, ExpertPolicy, load
+from bati.io import atomic_write_json, atomic_write_text
+
+HALF_CHEETAH_CONTROL_COST = 0.05
+
+
+def expert_episodes(expert: ExpertPolicy, env_tasks, policy_tasks, noise, seed) -> Episodes:
+    """One deterministic episode per env task, acting as the expert for the matching policy task."""
+    family = expert.family
+    task_arrays = np.stack([family.task_to_array(t) for t in policy_tasks])
+    key = jax.random.PRNGKey(seed)
+    return rollout(family, env_tasks, lambda obs, _: expert.act_from_arrays(obs, task_arrays, True, key),
+                   noise=noise, seed=seed)
+
+
+def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = None) -> dict:
+    """Evaluate the expert of `family_name` and write card.json / card.md next to it."""
+    family = get_family(family_name)
+    expert = load(family_name, zoo_dir)
+    directory = Path(zoo_dir or ZOO_DIR) / family_name
+    train, test = family.split_tasks(seed)
+    wrong = [train[family.most_different(t, train)] for t in test]
+    noise = family.default_noise
+
+    own = expert_episodes(expert, train + test, train + test, noise, seed=1000 + seed)
+    against = expert_episodes(expert, test, wrong, noise, seed=1000 + seed + len(train))
+    own_test = own.returns[len(train):]
+    card = {
+        "family": family_name,
+        "split_seed": seed,
+        "eval_noise": noise,
+        "train_steps": expert.meta["train_steps"],
+        "train_wall_time_s": expert.meta["train_wall_time_s"],
+        "train_tasks": train,
+        "test_tasks": test,
+        "train_returns": own.returns[: len(train)].tolist(),
+        "test_returns": own_test.tolist(),
+        "train_returns_noise_free": own.noise_free_returns[: len(train)].tolist(),
+        "test_returns_noise_free": own.noise_free_returns[len(train):].tolist(),
+        "oracle_test_return": float(own_test.mean()),
+        "oracle_train_return": float(own.returns[: len(train)].mean()),
+        "most_different_expert_test_return": float(against.returns.mean()),
+        "task_specificity_gap": float(own_test.mean() - against.returns.mean()),
+        "commit": _commit(),
+    }
+    if family_name == "HalfCheetahVel":
+        # noise-free reward = -|v - v*| - 0.05 |a|^2, so |v - v*| is recovered exactly.
+        control = HALF_CHEETAH_CONTROL_COST * np.sum(own.actions**2, axis=-1)
+        velocity_error = -(own.noise_free_rewards + control)
+        card["velocity_error_mean"] = float(velocity_error[:, 50:].mean())
+    card["summary"] = _summary(card)
+    atomic_write_json(directory / "card.json", card)
+    atomic_write_text(directory / "card.md", _markdown(card))
+    return card
+
+
+def _summary(card: dict) -> str:
+    text = (
+        f"{card['family']}: oracle return (test tasks, eps={card['eval_noise']:g}) "
+        f"{card['oracle_test_return']:.1f}; most-different expert {card['most_different_expert_test_return']:.1f}; "
+        f"gap {card['task_specificity_gap']:.1f}"
+    )
+    if "velocity_error_mean" in card:
+        text += f"; mean |v - v*| after step 50: {card['velocity_error_mean']:.3f}"
+    return text
+
+
+def _markdown(card: dict) -> str:
+    rows = "\n".join(
+        f"| {kind} | {i} | {_fmt(task)} | {ret:.1f} | {free:.1f} |"
+        for kind, tasks, rets, frees in (
+            ("train", card["train_tasks"], card["train_returns"], card["train_returns_noise_free"]),
+            ("test", card["test_tasks"], card["test_returns"], card["test_returns_noise_free"]),
+        )
+        for i, (task, ret, free) in enumerate(zip(tasks, rets, frees))
+    )
+    return f"""# Expert card: {card['family']}
+
+Task-conditioned SAC, {card['train_steps']:,} environment transitions, {card['train_wall_time_s'] / 60:.1f} min
+of training on this project's 2-core CPU machine.
+Evaluated with `bati experts card --family {card['family']} --seed {card['split_seed']}` at commit
+`{card['commit']}` (deterministic actions, one episode per task, eps = {card['eval_noise']:g}).
+
+**{card['summary']}**
+
+- Oracle (Pre-IQL) return: test tasks {card['oracle_test_return']:.1f}, training tasks {card['oracle_train_return']:.1f}
+- On each test task M, the expert for the most different training task (the p_test collector)
+  earns {card['most_different_expert_test_return']:.1f}: a gap of {card['task_specificity_gap']:.1f}.
+
+| split | # | task | return (eps) | noise-free return |
+| --- | --- | --- | --- | --- |
+{rows}
+"""
+
+
+def _fmt(task) -> str:
+    return "[" + ", ".join(f"{x:.3f}" for x in task) + "]" if isinstance(task, list) else f"{task:.3f}"
+
+
+def _commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                             cwd=Path(__file__).parent, timeout=5)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"

@@ -1,0 +1,156 @@
+"""Task-conditioned SAC: one expert per family, conditioned on the task's parameters.
+
+The paper trains one SAC per training task; we train one policy pi(a | s, task) on tasks drawn
+from the whole task space with eps = 0 (App. C.2), so "the expert for task M" is this policy
+conditioned on M. Actor and critics read concat(obs, task_to_array(task)).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import flax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from bati.nets import DoubleCritic, GaussianHead
+
+
+@dataclass(frozen=True)
+class SACConfig:
+    hidden_dims: tuple[int, ...] = (256, 256)
+    learning_rate: float = 3e-4
+    discount: float = 0.99
+    tau: float = 0.005
+    batch_size: int = 256
+    init_temperature: float = 1.0
+
+
+class SACState(NamedTuple):
+    actor: Any
+    critic: Any
+    target_critic: Any
+    log_alpha: jax.Array
+    actor_opt: Any
+    critic_opt: Any
+    alpha_opt: Any
+
+
+class SAC:
+    """The networks, losses and jitted update of a task-conditioned SAC."""
+
+    def __init__(self, obs_dim: int, task_dim: int, action_dim: int, config: SACConfig = SACConfig()):
+        self.config = config
+        self.obs_dim, self.task_dim, self.action_dim = obs_dim, task_dim, action_dim
+        self.actor_net = GaussianHead(config.hidden_dims, action_dim)
+        self.critic_net = DoubleCritic(config.hidden_dims)
+        self.optimizer = optax.adam(config.learning_rate)
+        self.target_entropy = -float(action_dim)
+        self.update_many = jax.jit(self._update_many)
+        self.act = jax.jit(self._act, static_argnames="deterministic")
+
+    def init(self, key: jax.Array) -> SACState:
+        k_actor, k_critic = jax.random.split(key)
+        inputs = jnp.zeros((1, self.obs_dim + self.task_dim))
+        actor = self.actor_net.init(k_actor, inputs)
+        critic = self.critic_net.init(k_critic, jnp.zeros((1, self.obs_dim + self.task_dim + self.action_dim)))
+        log_alpha = jnp.log(jnp.asarray(self.config.init_temperature, jnp.float32))
+        return SACState(
+            actor,
+            critic,
+            critic,
+            log_alpha,
+            self.optimizer.init(actor),
+            self.optimizer.init(critic),
+            self.optimizer.init(log_alpha),
+        )
+
+    # --- policy ---------------------------------------------------------------------------
+    def _sample_action(self, actor, inputs, key):
+        mean, log_std = self.actor_net.apply(actor, inputs)
+        noise = jax.random.normal(key, mean.shape)
+        pre_tanh = mean + jnp.exp(log_std) * noise
+        action = jnp.tanh(pre_tanh)
+        log_prob = jnp.sum(
+            -0.5 * noise**2 - log_std - 0.5 * jnp.log(2 * jnp.pi) - jnp.log(1 - action**2 + 1e-6), axis=-1
+        )
+        return action, log_prob
+
+    def _act(self, actor, obs, task, key, deterministic: bool):
+        inputs = jnp.concatenate([obs, task], axis=-1)
+        if deterministic:
+            return jnp.tanh(self.actor_net.apply(actor, inputs)[0])
+        return self._sample_action(actor, inputs, key)[0]
+
+    # --- losses ---------------------------------------------------------------------------
+    def critic_loss(self, critic, state: SACState, batch, key):
+        next_inputs = jnp.concatenate([batch["next_observations"], batch["tasks"]], -1)
+        next_action, next_log_prob = self._sample_action(state.actor, next_inputs, key)
+        next_q = self.critic_net.apply(state.target_critic, jnp.concatenate([next_inputs, next_action], -1))
+        next_v = next_q.min(0) - jnp.exp(state.log_alpha) * next_log_prob
+        # Episodes only end by the time limit, so every transition bootstraps.
+        target = batch["rewards"] + self.config.discount * next_v
+        inputs = jnp.concatenate([batch["observations"], batch["tasks"], batch["actions"]], -1)
+        q = self.critic_net.apply(critic, inputs)
+        return jnp.mean((q - jax.lax.stop_gradient(target)) ** 2), q.mean()
+
+    def actor_loss(self, actor, state: SACState, batch, key):
+        inputs = jnp.concatenate([batch["observations"], batch["tasks"]], -1)
+        action, log_prob = self._sample_action(actor, inputs, key)
+        q = self.critic_net.apply(state.critic, jnp.concatenate([inputs, action], -1)).min(0)
+        return jnp.mean(jnp.exp(state.log_alpha) * log_prob - q), log_prob.mean()
+
+    # --- update ---------------------------------------------------------------------------
+    def _update(self, state: SACState, batch, key):
+        k_critic, k_actor = jax.random.split(key)
+        (c_loss, q_mean), c_grads = jax.value_and_grad(self.critic_loss, has_aux=True)(
+            state.critic, state, batch, k_critic
+        )
+        c_updates, critic_opt = self.optimizer.update(c_grads, state.critic_opt)
+        critic = optax.apply_updates(state.critic, c_updates)
+        state = state._replace(critic=critic, critic_opt=critic_opt)
+
+        (a_loss, log_prob), a_grads = jax.value_and_grad(self.actor_loss, has_aux=True)(
+            state.actor, state, batch, k_actor
+        )
+        a_updates, actor_opt = self.optimizer.update(a_grads, state.actor_opt)
+        actor = optax.apply_updates(state.actor, a_updates)
+
+        # Temperature: raise alpha when the entropy (-log_prob) is below the target.
+        alpha_grad = jax.grad(lambda la: -la * jax.lax.stop_gradient(log_prob + self.target_entropy))(
+            state.log_alpha
+        )
+        al_updates, alpha_opt = self.optimizer.update(alpha_grad, state.alpha_opt)
+        log_alpha = optax.apply_updates(state.log_alpha, al_updates)
+
+        target_critic = optax.incremental_update(critic, state.target_critic, self.config.tau)
+        state = SACState(actor, critic, target_critic, log_alpha, actor_opt, critic_opt, alpha_opt)
+        metrics = {
+            "critic_loss": c_loss,
+            "actor_loss": a_loss,
+            "q": q_mean,
+            "entropy": -log_prob,
+            "alpha": jnp.exp(log_alpha),
+        }
+        return state, metrics
+
+    def _update_many(self, state: SACState, batches, key):
+        """Apply one update per leading-axis slice of `batches` (a scan: one dispatch)."""
+        keys = jax.random.split(key, jax.tree_util.tree_leaves(batches)[0].shape[0])
+        state, metrics = jax.lax.scan(lambda s, xs: self._update(s, *xs), state, (batches, keys))
+        return state, jax.tree_util.tree_map(jnp.mean, metrics)
+
+
+def state_to_bytes(state: SACState) -> bytes:
+    return flax.serialization.to_bytes(state)
+
+
+def state_from_bytes(template: SACState, data: bytes) -> SACState:
+    return flax.serialization.from_bytes(template, data)
+
+
+def numpy_tree(tree):
+    return jax.tree_util.tree_map(np.asarray, tree)

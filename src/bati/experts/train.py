@@ -1,0 +1,217 @@
+"""Train a family's task-conditioned SAC expert, with periodic checkpoints and resume.
+
+Each iteration steps `num_envs` envs in lockstep (each on its own task, resampled from the
+task space every episode, eps = 0) and then applies `num_envs * updates_per_step` SAC updates
+in one jitted call. Checkpoints are taken at episode boundaries, so a resumed run replays
+exactly what the uninterrupted run would have done.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import jax
+import numpy as np
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from bati.envs import EPISODE_LENGTH, get_family
+from bati.envs.rollout import rollout
+from bati.experts.sac import SAC, SACConfig, state_from_bytes, state_to_bytes
+from bati.experts.zoo import save_expert
+from bati.io import append_jsonl, atomic_save_npz, atomic_write_json
+
+# Environment transitions per family (App. C.2 gives none; chosen by measured learning curves).
+DEFAULT_STEPS = {
+    "PointGoal": 20_000,
+    "HalfCheetahVel": 300_000,
+    "HalfCheetahDir": 200_000,
+    "AntDir": 600_000,
+    "HopperParam": 400_000,
+    "WalkerParam": 600_000,
+}
+
+
+@dataclass
+class ExpertTrainConfig:
+    family: str
+    total_steps: int | None = None
+    """Environment transitions (default: per family, see DEFAULT_STEPS)."""
+    num_envs: int = 4
+    updates_per_step: float = 0.5
+    """SAC updates per environment transition (env steps are cheap next to updates on CPU)."""
+    start_steps: int = 5_000
+    """Transitions collected with uniform random actions before the policy acts."""
+    seed: int = 0
+    checkpoint_every: int = 20_000
+    eval_every: int = 20_000
+    eval_tasks: int = 8
+    out_dir: Path | None = None
+    """Run directory (default: runs/experts/<family>)."""
+    export_dir: Path | None = None
+    """Where the finished actor is exported (default: the package zoo)."""
+    sac: SACConfig = field(default_factory=SACConfig)
+
+    def resolved(self) -> "ExpertTrainConfig":
+        get_family(self.family)  # validate the name early
+        total = self.total_steps or DEFAULT_STEPS[self.family]
+        if total <= 0 or self.num_envs <= 0 or self.updates_per_step < 0:
+            raise ValueError("total_steps and num_envs must be positive, updates_per_step >= 0")
+        out = self.out_dir or Path("runs/experts") / self.family
+        return ExpertTrainConfig(**{**asdict(self), "total_steps": total, "out_dir": out, "sac": self.sac})
+
+
+class ReplayBuffer:
+    """Flat numpy arrays, filled in order, sampled uniformly."""
+
+    FIELDS = ("observations", "tasks", "actions", "rewards", "next_observations")
+
+    def __init__(self, capacity: int, obs_dim: int, task_dim: int, action_dim: int):
+        dims = {"observations": obs_dim, "tasks": task_dim, "actions": action_dim, "rewards": None,
+                "next_observations": obs_dim}
+        self.data = {k: np.zeros((capacity,) if d is None else (capacity, d), np.float32) for k, d in dims.items()}
+        self.size = 0
+
+    def add(self, **batch: np.ndarray) -> None:
+        n = len(batch["rewards"])
+        for k in self.FIELDS:
+            self.data[k][self.size : self.size + n] = batch[k]
+        self.size += n
+
+    def sample(self, rng: np.random.Generator, num_batches: int, batch_size: int) -> dict[str, np.ndarray]:
+        idx = rng.integers(0, self.size, size=(num_batches, batch_size))
+        return {k: v[idx] for k, v in self.data.items()}
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {k: v[: self.size] for k, v in self.data.items()}
+
+    def restore(self, arrays) -> None:
+        self.size = len(arrays["rewards"])
+        for k in self.FIELDS:
+            self.data[k][: self.size] = arrays[k]
+
+
+def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
+    """Train (or resume) the expert of `config.family`; returns the run directory."""
+    config = config.resolved()
+    family = get_family(config.family)
+    out: Path = config.out_dir
+    probe = family.make_env(family.sample_tasks(1, seed=0)[0], noise=0.0)
+    obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
+    sac = SAC(obs_dim, family.task_dim, action_dim, config.sac)
+    n_iters_per_episode = EPISODE_LENGTH
+    updates_per_iter = int(round(config.num_envs * config.updates_per_step))
+
+    key = jax.random.PRNGKey(config.seed)
+    key, init_key = jax.random.split(key)
+    state = sac.init(init_key)
+    rng = np.random.default_rng(config.seed)
+    buffer = ReplayBuffer(config.total_steps + config.num_envs * EPISODE_LENGTH, obs_dim, family.task_dim, action_dim)
+    episode, wall_time = 0, 0.0
+    _check_config(out, config)
+    if (out / "checkpoint.npz").exists():
+        state, key, rng, episode, wall_time = _load_checkpoint(out, buffer, state)
+    steps = buffer.size
+
+    envs = [family.make_env(family.sample_tasks(1, seed=0)[0], noise=0.0) for _ in range(config.num_envs)]
+    progress = Progress(
+        TextColumn(f"[bold]{config.family} expert"), BarColumn(), TextColumn("{task.completed:,}/{task.total:,}"),
+        TextColumn("{task.fields[status]}"), TimeElapsedColumn(), TimeRemainingColumn(), disable=not show_progress,
+    )
+    start = time.perf_counter() - wall_time
+    last_eval = None
+    with progress:
+        bar = progress.add_task("train", total=config.total_steps, completed=steps, status="")
+        while steps < config.total_steps:
+            tasks = family.sample_tasks(config.num_envs, rng)
+            task_arrays = np.stack([family.task_to_array(t) for t in tasks])
+            obs = []
+            for i, (env, task) in enumerate(zip(envs, tasks)):
+                env.unwrapped.set_task(task)
+                obs.append(env.reset(seed=config.seed * 1_000_003 + episode * config.num_envs + i)[0])
+            obs = np.stack(obs).astype(np.float32)
+            metrics = {}
+            for _ in range(n_iters_per_episode):
+                if steps < config.start_steps:
+                    actions = rng.uniform(-1.0, 1.0, size=(config.num_envs, action_dim)).astype(np.float32)
+                else:
+                    key, act_key = jax.random.split(key)
+                    actions = np.asarray(sac.act(state.actor, obs, task_arrays, act_key, deterministic=False))
+                results = [env.step(a) for env, a in zip(envs, actions)]
+                next_obs = np.stack([r[0] for r in results]).astype(np.float32)
+                rewards = np.array([r[1] for r in results], np.float32)
+                buffer.add(observations=obs, tasks=task_arrays, actions=actions, rewards=rewards,
+                           next_observations=next_obs)
+                obs = next_obs
+                steps += config.num_envs
+                if steps >= config.start_steps and updates_per_iter > 0:
+                    batches = buffer.sample(rng, updates_per_iter, config.sac.batch_size)
+                    key, update_key = jax.random.split(key)
+                    state, metrics = sac.update_many(state, batches, update_key)
+            episode += 1
+            progress.update(bar, completed=min(steps, config.total_steps))
+            crossed = lambda every: steps // every > (steps - config.num_envs * EPISODE_LENGTH) // every
+            if crossed(config.eval_every) or steps >= config.total_steps:
+                last_eval = evaluate_expert(sac, state.actor, family, config.eval_tasks, seed=12345)
+                record = {"steps": steps, "episode": episode, "wall_time": time.perf_counter() - start,
+                          **{k: float(v) for k, v in metrics.items()}, **last_eval}
+                append_jsonl(out / "metrics.jsonl", record)
+                progress.update(bar, status=f"eval return {last_eval['eval_return']:.1f}")
+            if crossed(config.checkpoint_every) or steps >= config.total_steps:
+                _save_checkpoint(out, state, key, rng, episode, buffer, time.perf_counter() - start)
+
+    meta = {"obs_dim": obs_dim, "task_dim": family.task_dim, "action_dim": action_dim,
+            "hidden_dims": list(config.sac.hidden_dims), "train_steps": steps, "seed": config.seed,
+            "train_wall_time_s": round(time.perf_counter() - start, 1), "final_eval": last_eval}
+    save_expert((config.export_dir or _default_zoo()) / config.family, config.family, state.actor, meta)
+    return out
+
+
+def evaluate_expert(sac: SAC, actor, family, n_tasks: int, seed: int) -> dict[str, float]:
+    """Deterministic return (eps = 0) on n fixed tasks; velocity error where it applies."""
+    tasks = family.sample_tasks(n_tasks, seed)
+    task_arrays = np.stack([family.task_to_array(t) for t in tasks])
+    key = jax.random.PRNGKey(0)
+    episodes = rollout(family, tasks, lambda o, _: sac.act(actor, o, task_arrays, key, deterministic=True),
+                       noise=0.0, seed=seed)
+    return {"eval_return": float(episodes.returns.mean())}
+
+
+def _default_zoo() -> Path:
+    from bati.experts.zoo import ZOO_DIR
+
+    return ZOO_DIR
+
+
+def _check_config(out: Path, config: ExpertTrainConfig) -> None:
+    """Refuse to resume a run directory written with another family or seed."""
+    path = out / "config.json"
+    current = json.loads(json.dumps(asdict(config), default=str))
+    if path.exists():
+        saved = json.loads(path.read_text())
+        for k in ("family", "seed", "num_envs"):
+            if saved.get(k) != current[k]:
+                raise ValueError(f"{path} was written with {k}={saved.get(k)!r}, not {current[k]!r}: "
+                                 f"use another --out-dir or delete the old run")
+    atomic_write_json(path, current)
+
+
+def _save_checkpoint(out: Path, state, key, rng, episode, buffer, wall_time: float) -> None:
+    """One file holds the whole training state, so a crash can't leave a mixed checkpoint."""
+    meta = {"episode": episode, "key": np.asarray(key).tolist(), "rng": rng.bit_generator.state,
+            "wall_time": wall_time}
+    atomic_save_npz(out / "checkpoint.npz", **buffer.state(),
+                    state=np.frombuffer(state_to_bytes(state), np.uint8), meta=np.array(json.dumps(meta)))
+
+
+def _load_checkpoint(out: Path, buffer: ReplayBuffer, template):
+    with np.load(out / "checkpoint.npz") as arrays:
+        buffer.restore(arrays)
+        state = state_from_bytes(template, arrays["state"].tobytes())
+        meta = json.loads(str(arrays["meta"]))
+    rng = np.random.default_rng()
+    rng.bit_generator.state = meta["rng"]
+    key = jax.numpy.asarray(np.asarray(meta["key"], dtype=np.uint32))
+    return state, key, rng, meta["episode"], meta["wall_time"]

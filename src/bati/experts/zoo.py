@@ -1,0 +1,80 @@
+"""Shipped experts: save / load a trained task-conditioned actor as `policy(obs, task) -> action`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import flax
+import jax
+import numpy as np
+
+from bati.envs import Task, TaskError, get_family
+from bati.io import atomic_write_bytes, atomic_write_json
+
+ZOO_DIR = Path(__file__).parent / "zoo"
+
+
+class ExpertPolicy:
+    """A family's expert: `policy(obs, task)` -> action, batched or not.
+
+    `task` is a task of the family (or a list of them for a batch of observations);
+    `deterministic=False` samples from the policy with the given `key` (a jax PRNG key).
+    """
+
+    def __init__(self, family_name: str, actor_params: Any, meta: dict):
+        from bati.experts.sac import SAC, SACConfig
+
+        self.family = get_family(family_name)
+        self.meta = meta
+        self._sac = SAC(meta["obs_dim"], meta["task_dim"], meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
+        self.actor_params = actor_params
+
+    def task_arrays(self, task: Task | list[Task], batch: int | None) -> np.ndarray:
+        """One task (broadcast over the batch) or one task per observation, as arrays."""
+        try:
+            single = self.family.task_to_array(task)
+        except TaskError:
+            if batch is None:
+                raise
+            return np.stack([self.family.task_to_array(t) for t in task])
+        return single if batch is None else np.broadcast_to(single, (batch, single.shape[0]))
+
+    def __call__(self, obs, task, deterministic: bool = True, key: jax.Array | None = None) -> np.ndarray:
+        obs = np.asarray(obs, dtype=np.float32)
+        batch = obs.shape[0] if obs.ndim == 2 else None
+        tasks = self.task_arrays(task, batch)
+        if not deterministic and key is None:
+            raise ValueError("a stochastic expert action needs a PRNG key: policy(obs, task, deterministic=False, key=key)")
+        key = jax.random.PRNGKey(0) if key is None else key
+        return np.asarray(self._sac.act(self.actor_params, obs, tasks, key, deterministic=deterministic))
+
+    def act_from_arrays(self, obs: np.ndarray, task_arrays: np.ndarray, deterministic: bool, key) -> np.ndarray:
+        """Batched actions when the task arrays are already built (the fast path for rollouts)."""
+        return np.asarray(self._sac.act(self.actor_params, obs, task_arrays, key, deterministic=deterministic))
+
+
+def save_expert(directory: Path, family_name: str, actor_params: Any, meta: dict) -> None:
+    atomic_write_bytes(directory / "actor.msgpack", flax.serialization.to_bytes(actor_params))
+    atomic_write_json(directory / "expert.json", {"family": family_name, **meta})
+
+
+def load(family_name: str, zoo_dir: str | Path | None = None) -> ExpertPolicy:
+    """The shipped (or `zoo_dir`'s) expert of a family."""
+    from bati.experts.sac import SAC, SACConfig
+
+    directory = Path(zoo_dir or ZOO_DIR) / family_name
+    meta_path = directory / "expert.json"
+    get_family(family_name)  # unknown family -> TaskError
+    if not meta_path.exists():
+        raise FileNotFoundError(
+            f"no expert for {family_name} in {directory}; train one with `bati experts train --family {family_name}`"
+        )
+    meta = json.loads(meta_path.read_text())
+    if meta.get("family") != family_name:
+        raise ValueError(f"{meta_path} holds an expert of {meta.get('family')!r}, not {family_name!r}")
+    sac = SAC(meta["obs_dim"], meta["task_dim"], meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
+    template = sac.init(jax.random.PRNGKey(0)).actor
+    params = flax.serialization.from_bytes(template, (directory / "actor.msgpack").read_bytes())
+    return ExpertPolicy(family_name, params, meta)
