@@ -6,10 +6,11 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Union
+from typing import Annotated, Literal, Union
 
 import tyro
 from rich.console import Console
+from rich.markdown import Markdown
 from rich.markup import escape
 from rich.table import Table
 
@@ -118,18 +119,142 @@ class Experts:
         self.command.run()
 
 
-COMMANDS = {"envs": Envs, "experts": Experts}
+@dataclass
+class DataCollect:
+    """Collect a family's offline datasets (Eq. 9) and test contexts (Eq. 10) as Minari datasets (cached)."""
+
+    family: str
+    scale: Literal["quick", "paper"] = "quick"
+    """quick: 20 episodes per training task, 5 per context dataset; paper: App. C Table 3 sizes per task."""
+    seed: int = 0
+    """Seed of the train/test task split, the collector draws, the env resets and the expert's actions."""
+    noise: float | None = None
+    """Per-step noise eps of the envs (default: the family's)."""
+    root: Path = Path("data")
+    """Datasets root: the collection goes to <root>/<family>/<scale>-seed<seed>-eps<eps>/."""
+    zoo_dir: Path | None = None
+    """Where the family's expert is loaded from (default: the package zoo)."""
+
+    def run(self) -> None:
+        from bati.data.collect import collect
+
+        result = collect(self.family, self.scale, self.seed, self.noise, self.root, zoo_dir=self.zoo_dir,
+                         progress=console.is_terminal)
+        m = result.manifest
+        how = "already collected" if result.cached else f"collected in {result.wall_time_s:.1f} s"
+        console.print(
+            f"{m['family']} {m['scale']} seed={m['seed']} eps={m['noise']:g}: {how}: "
+            f"{m['transitions']:,} transitions ({m['n_episodes']} episodes per training task, "
+            f"{m['n_context_episodes']} per context dataset) "
+            f"in {result.path}",
+            soft_wrap=True,
+        )
+
+
+@dataclass
+class DataInfo:
+    """Summarise a collection on disk (its manifest): tasks and context collectors."""
+
+    family: str
+    scale: Literal["quick", "paper"] = "quick"
+    seed: int = 0
+    noise: float | None = None
+    root: Path = Path("data")
+
+    def run(self) -> None:
+        from bati.data import store
+        from bati.envs import get_family
+
+        family = get_family(self.family)
+        noise = family.validate_noise(self.noise)
+        path = store.collection_dir(self.root, self.family, self.scale, self.seed, noise)
+        m = store.read_manifest(path, family, self.scale, self.seed, noise, self.root)
+        table = Table(title=f"{path} (commit {m['commit']}, {m['transitions']:,} transitions)")
+        for column in ("test task", "task", "p_test collector (most different)",
+                       "p_train collector (most similar)"):
+            table.add_column(column)
+        for j, task in enumerate(m["test_tasks"]):
+            d, s = m["p_test_most_different"][j], m["p_train_most_similar"][j]
+            table.add_row(str(j), escape(str(task)), f"{d}: {escape(str(m['train_tasks'][d]))}",
+                          f"{s}: {escape(str(m['train_tasks'][s]))}")
+        console.print(table)
+
+
+@dataclass
+class Data:
+    """Offline datasets and context data (Minari)."""
+
+    command: group(collect=DataCollect, info=DataInfo)
+
+    def run(self) -> None:
+        self.command.run()
+
+
+@dataclass
+class Train:
+    """Train one method on one family (offline, IQL core), evaluating on p_train / p_test contexts."""
+
+    family: str = "PointGoal"
+    method: str = "bati"
+    seed: int = 0
+    scale: Literal["quick", "paper"] = "quick"
+    steps: int | None = None
+    """Gradient steps (default: quick 4k, paper 100k)."""
+    noise: float | None = None
+    out_dir: Path | None = None
+    """Run directory (default runs/<family>/<scale>/<method>-seed<seed>); re-running resumes."""
+    data_root: Path = Path("data")
+
+    def run(self) -> None:
+        from bati.train import TrainConfig, train
+
+        summary = train(TrainConfig(family=self.family, method=self.method, seed=self.seed, scale=self.scale,
+                                    steps=self.steps, noise=self.noise, out_dir=self.out_dir,
+                                    data_root=self.data_root))
+        console.print(
+            f"{self.method} on {self.family}: return with p_train contexts {summary['p_train_return']:.1f}, "
+            f"with p_test contexts {summary['p_test_return']:.1f} (mean of the last "
+            f"{summary['evaluations_averaged']} evaluations)"
+        )
+
+
+@dataclass
+class Run:
+    """The main job: data with the shipped experts, train BATI and Recon, evaluate under context shift."""
+
+    family: str = "PointGoal"
+    methods: tuple[str, ...] = ("bati", "recon")
+    seeds: tuple[int, ...] = (0,)
+    scale: Literal["quick", "paper"] = "quick"
+    steps: int | None = None
+    noise: float | None = None
+    out_dir: Path | None = None
+    """Experiment directory (default runs/<family>/<scale>)."""
+    data_root: Path = Path("data")
+
+    def run(self) -> None:
+        from bati.experiments.main_job import MainJobConfig, run_main_job
+
+        results = run_main_job(MainJobConfig(self.family, self.methods, self.seeds, self.scale, self.steps,
+                                             self.noise, self.data_root, self.out_dir))
+        console.print(Markdown(results["markdown"]))
+        console.print(f"wall time {results['wall_time_s'] / 60:.1f} min; results in {results['out_dir']}/"
+                      "(results.json, results.md, learning_curves.png)")
+
+
+COMMANDS = {"envs": Envs, "experts": Experts, "data": Data, "train": Train, "run": Run}
 
 
 def main(argv: list[str] | None = None) -> int:
     from bati.envs import TaskError
+    from bati.errors import BatiError
 
     command = tyro.extras.subcommand_cli_from_dict(
         COMMANDS, args=argv, prog="bati", config=(tyro.conf.OmitSubcommandPrefixes,)
     )
     try:
         command.run()
-    except (UserError, TaskError, FileNotFoundError, ValueError) as err:
+    except (UserError, BatiError, TaskError, FileNotFoundError, ValueError) as err:
         error_console.print(f"[bold red]error:[/] {escape(str(err))}")
         return 2
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600 files
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -60,3 +62,25 @@ def _json_default(value: Any) -> Any:
     if hasattr(value, "item"):
         return value.item()
     raise TypeError(f"cannot serialise {type(value).__name__} to JSON")
+
+
+def git_commit() -> str:
+    """Short commit of the running code ("unknown" outside a git checkout)."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                             cwd=Path(__file__).parent, timeout=5)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def check_run_config(path: Path, config: dict, identity: tuple[str, ...]) -> None:
+    """Write a run's config.json, or refuse to reuse a directory whose run differs in `identity` keys."""
+    if path.exists():
+        saved = json.loads(path.read_text())
+        diffs = [k for k in identity if saved.get(k) != config.get(k)]
+        if diffs:
+            detail = ", ".join(f"{k}: {saved.get(k)!r} there, {config.get(k)!r} now" for k in diffs)
+            raise ValueError(f"{path.parent} holds a run with another config ({detail}); use another --out-dir")
+    else:
+        atomic_write_json(path, config)

@@ -7,7 +7,6 @@ M with the expert for the most different training task (the p_test context colle
 
 from __future__ import annotations
 
-import subprocess
 from pathlib import Path
 
 import jax
@@ -16,7 +15,7 @@ import numpy as np
 from bati.envs import get_family
 from bati.envs.rollout import Episodes, rollout
 from bati.experts.zoo import ZOO_DIR, ExpertPolicy, load
-from bati.io import atomic_write_json, atomic_write_text
+from bati.io import atomic_write_json, atomic_write_text, git_commit
 
 HALF_CHEETAH_CONTROL_COST = 0.05
 
@@ -58,7 +57,7 @@ def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = Non
         "oracle_train_return": float(own.returns[: len(train)].mean()),
         "most_different_expert_test_return": float(against.returns.mean()),
         "task_specificity_gap": float(own_test.mean() - against.returns.mean()),
-        "commit": _commit(),
+        "commit": git_commit(),
     }
     if family_name == "HalfCheetahVel":
         # noise-free reward = -|v - v*| - 0.05 |a|^2, so |v - v*| is recovered exactly.
@@ -112,12 +111,3 @@ Evaluated with `bati experts card --family {card['family']} --seed {card['split_
 
 def _fmt(task) -> str:
     return "[" + ", ".join(f"{x:.3f}" for x in task) + "]" if isinstance(task, list) else f"{task:.3f}"
-
-
-def _commit() -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                             cwd=Path(__file__).parent, timeout=5)
-        return out.stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"

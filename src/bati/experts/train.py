@@ -21,7 +21,7 @@ from bati.envs import EPISODE_LENGTH, get_family
 from bati.envs.rollout import rollout
 from bati.experts.sac import SAC, SACConfig, state_from_bytes, state_to_bytes
 from bati.experts.zoo import save_expert
-from bati.io import append_jsonl, atomic_save_npz, atomic_write_json
+from bati.io import append_jsonl, atomic_save_npz, check_run_config
 
 # Environment transitions per family (App. C.2 gives none; chosen by measured learning curves).
 DEFAULT_STEPS = {
@@ -186,16 +186,9 @@ def _default_zoo() -> Path:
 
 
 def _check_config(out: Path, config: ExpertTrainConfig) -> None:
-    """Refuse to resume a run directory written with another family or seed."""
-    path = out / "config.json"
+    """Refuse to resume a run directory written with another family, seed or env count."""
     current = json.loads(json.dumps(asdict(config), default=str))
-    if path.exists():
-        saved = json.loads(path.read_text())
-        for k in ("family", "seed", "num_envs"):
-            if saved.get(k) != current[k]:
-                raise ValueError(f"{path} was written with {k}={saved.get(k)!r}, not {current[k]!r}: "
-                                 f"use another --out-dir or delete the old run")
-    atomic_write_json(path, current)
+    check_run_config(out / "config.json", current, ("family", "seed", "num_envs"))
 
 
 def _save_checkpoint(out: Path, state, key, rng, episode, buffer, wall_time: float) -> None:

@@ -1,0 +1,34 @@
+"""Offline datasets (Eq. 9) and test-time context data (Eq. 10), stored as Minari datasets.
+
+>>> from bati.data import ensure_family_data, sample_batch, sample_contexts
+>>> data = ensure_family_data("PointGoal", scale="quick", seed=0)
+
+Names are imported lazily, so `bati data collect` on a cached collection does not load JAX.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "collect": "bati.data.collect",
+    "make_plan": "bati.data.collect",
+    "CollectResult": "bati.data.collect",
+    "DatasetError": "bati.data.store",
+    "DatasetNotFoundError": "bati.data.store",
+    "collection_dir": "bati.data.store",
+    "TaskData": "bati.data.batch",
+    "FamilyData": "bati.data.batch",
+    "load_family_data": "bati.data.batch",
+    "ensure_family_data": "bati.data.batch",
+    "sample_batch": "bati.data.batch",
+    "sample_contexts": "bati.data.batch",
+}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'bati.data' has no attribute {name!r}")

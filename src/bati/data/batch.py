@@ -1,0 +1,269 @@
+"""A collection as flat jax arrays, and jittable samplers of training batches and contexts.
+
+>>> data = ensure_family_data("PointGoal", scale="quick", seed=0)   # collects if missing
+>>> batch = sample_batch(data.train, key, task_batch=16, batch_size=256)
+>>> ctx = sample_contexts(data.p_test, key, jnp.arange(20), length=50)
+
+The Minari datasets are read once (Minari's per-episode reads are slow) and cached as
+`arrays.npz` next to the manifest. Every task of a split has the same number n of transitions,
+stored episode after episode (n = episodes x 200), so `observations[k, e * 200 + t]` is step t
+of episode e of task k.
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import flax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bati.data import store
+from bati.envs import EPISODE_LENGTH, get_family
+
+FIELDS = ("observations", "actions", "rewards", "next_observations", "collector")
+
+
+@flax.struct.dataclass
+class TaskData:
+    """Transitions of n_tasks tasks, n per task (jax arrays; episodes are contiguous blocks)."""
+
+    observations: jax.Array  # (n_tasks, n, obs_dim) float32
+    actions: jax.Array  # (n_tasks, n, action_dim) float32
+    rewards: jax.Array  # (n_tasks, n) float32
+    next_observations: jax.Array  # (n_tasks, n, obs_dim) float32
+    collector: jax.Array  # (n_tasks, n) int32: training task whose expert collected the transition
+    episode_length: int = flax.struct.field(pytree_node=False, default=EPISODE_LENGTH)
+
+    @property
+    def n_tasks(self) -> int:
+        return self.rewards.shape[0]
+
+    @property
+    def n_transitions(self) -> int:
+        """Transitions per task."""
+        return self.rewards.shape[1]
+
+    @property
+    def n_episodes(self) -> int:
+        """Episodes per task."""
+        return self.rewards.shape[1] // self.episode_length
+
+
+@dataclass
+class FamilyData:
+    family: str
+    scale: str
+    seed: int
+    noise: float
+    train_tasks: list
+    test_tasks: list
+    train_task_arrays: np.ndarray  # (20, task_dim)
+    test_task_arrays: np.ndarray  # (20, task_dim)
+    train: TaskData  # Eq. 9 datasets of the training tasks
+    p_test: TaskData  # Eq. 10 context data of the test tasks
+    p_train: TaskData  # p_train-style context data of the test tasks
+    obs_dim: int
+    action_dim: int
+    task_dim: int
+    path: Path | None = None  # the collection directory
+    manifest: dict = field(default_factory=dict)
+
+
+# --- samplers ----------------------------------------------------------------------------------
+@functools.partial(jax.jit, static_argnames=("task_batch", "batch_size"))
+def sample_batch(data: TaskData, key: jax.Array, task_batch: int, batch_size: int) -> dict:
+    """`task_batch` distinct tasks, then `batch_size` transitions of each, uniformly.
+
+    Returns task_ids (T,), observations (T, B, obs_dim), actions (T, B, action_dim),
+    rewards (T, B), next_observations (T, B, obs_dim).
+    """
+    n_tasks, n = data.rewards.shape
+    if not 0 < task_batch <= n_tasks:
+        raise ValueError(
+            f"task_batch={task_batch} must be in [1, {n_tasks}] (tasks are drawn without replacement)"
+        )
+    k_tasks, k_steps = jax.random.split(key)
+    task_ids = jax.random.choice(k_tasks, n_tasks, (task_batch,), replace=False)
+    steps = jax.random.randint(k_steps, (task_batch, batch_size), 0, n)
+    rows = task_ids[:, None]
+    return {
+        "task_ids": task_ids,
+        "observations": data.observations[rows, steps],
+        "actions": data.actions[rows, steps],
+        "rewards": data.rewards[rows, steps],
+        "next_observations": data.next_observations[rows, steps],
+    }
+
+
+@functools.partial(jax.jit, static_argnames=("length",))
+def sample_contexts(data: TaskData, key: jax.Array, task_ids: jax.Array, length: int) -> dict:
+    """For each task id, `length` consecutive transitions of one episode of that task.
+
+    The window's episode and start (0 .. episode_length - length) are uniform, so every window
+    that lies inside one episode is equally likely; a context never spans two episodes (whose
+    collectors may differ). Returns observations (K, C, obs_dim), actions, rewards (K, C),
+    next_observations.
+    """
+    n = data.rewards.shape[1]
+    if not 0 < length <= data.episode_length:
+        raise ValueError(
+            f"context length {length} must be in [1, {data.episode_length}] (one episode at most)"
+        )
+    k_episode, k_start = jax.random.split(key)
+    shape = task_ids.shape
+    episode = jax.random.randint(k_episode, shape, 0, n // data.episode_length)
+    start = jax.random.randint(k_start, shape, 0, data.episode_length - length + 1)
+    steps = (episode * data.episode_length + start)[..., None] + jnp.arange(length)
+    rows = task_ids[..., None]
+    return {
+        "observations": data.observations[rows, steps],
+        "actions": data.actions[rows, steps],
+        "rewards": data.rewards[rows, steps],
+        "next_observations": data.next_observations[rows, steps],
+    }
+
+
+# --- loading -----------------------------------------------------------------------------------
+def load_family_data(
+    family: str,
+    scale: str = "quick",
+    seed: int = 0,
+    noise: float | None = None,
+    root: str | Path = store.DEFAULT_ROOT,
+    *,
+    cache: bool = True,
+) -> FamilyData:
+    """Read a complete collection (see `bati data collect`) into flat arrays.
+
+    Raises DatasetNotFoundError (with the collect command) if it is missing, DatasetError if a
+    file is damaged or its shapes do not match the family's env.
+    """
+    fam = get_family(family)
+    noise = fam.validate_noise(noise)
+    path = store.collection_dir(root, family, scale, seed, noise)
+    manifest = store.read_manifest(path, fam, scale, seed, noise, root)
+    probe = fam.make_env(manifest["train_tasks"][0], noise)
+    obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
+    probe.close()
+    if (manifest.get("obs_dim"), manifest.get("action_dim")) != (obs_dim, action_dim):
+        raise store.DatasetError(
+            f"{path / store.MANIFEST}: obs_dim/action_dim "
+            f"{manifest.get('obs_dim')}/{manifest.get('action_dim')} do not match the {family} env's "
+            f"{obs_dim}/{action_dim}; re-collect the data"
+        )
+    length = int(manifest.get("episode_length", EPISODE_LENGTH))
+
+    arrays = _load_cache(path, manifest, obs_dim, action_dim) if cache else None
+    if arrays is None:
+        arrays = _read_minari(path, manifest, obs_dim, action_dim, length)
+        if cache:
+            try:
+                collection_id = np.array(manifest["collection_id"])
+                store.save_npz(path / store.ARRAY_CACHE, {"collection_id": collection_id, **arrays})
+            except OSError as err:  # a read-only data directory is fine
+                warnings.warn(f"could not write the array cache {path / store.ARRAY_CACHE}: {err}")
+
+    def task_data(split: str) -> TaskData:
+        return TaskData(
+            **{name: jnp.asarray(arrays[f"{split}__{name}"]) for name in FIELDS}, episode_length=length
+        )
+
+    train_tasks, test_tasks = manifest["train_tasks"], manifest["test_tasks"]
+    return FamilyData(
+        family=family,
+        scale=scale,
+        seed=seed,
+        noise=noise,
+        train_tasks=train_tasks,
+        test_tasks=test_tasks,
+        train_task_arrays=np.stack([fam.task_to_array(t) for t in train_tasks]),
+        test_task_arrays=np.stack([fam.task_to_array(t) for t in test_tasks]),
+        train=task_data("train"),
+        p_test=task_data("p_test"),
+        p_train=task_data("p_train"),
+        obs_dim=obs_dim,
+        action_dim=action_dim,
+        task_dim=fam.task_dim,
+        path=path,
+        manifest=manifest,
+    )
+
+
+def ensure_family_data(
+    family: str,
+    scale: str = "quick",
+    seed: int = 0,
+    noise: float | None = None,
+    root: str | Path = store.DEFAULT_ROOT,
+    *,
+    n_episodes: int | None = None,
+    n_context_episodes: int | None = None,
+    zoo_dir: str | Path | None = None,
+    progress: bool = True,
+    cache: bool = True,
+) -> FamilyData:
+    """Collect the data if it is not on disk yet (see `collect`), then load it."""
+    from bati.data.collect import collect
+
+    collect(family, scale, seed, noise, root, n_episodes=n_episodes, n_context_episodes=n_context_episodes,
+            zoo_dir=zoo_dir, progress=progress)
+    return load_family_data(family, scale, seed, noise, root, cache=cache)
+
+
+def _read_minari(path: Path, manifest: dict, obs_dim: int, action_dim: int, length: int) -> dict:
+    arrays = {}
+    n_train = len(manifest["train_tasks"])
+    for split in store.SPLITS:
+        names = manifest["datasets"][split]
+        expected_episodes = manifest["n_episodes"] if split == "train" else manifest["n_context_episodes"]
+        parts: dict[str, list] = {name: [] for name in FIELDS}
+        for index, name in enumerate(names):
+            episodes = store.read_dataset(path / name, obs_dim, action_dim, length)
+            file = path / name / "data" / "main_data.hdf5"
+            n_eps = episodes["rewards"].shape[0]
+            if n_eps != expected_episodes:
+                raise store.DatasetError(f"{file}: {n_eps} episodes, the manifest says {expected_episodes}")
+            collectors = []
+            for e, options in enumerate(episodes["options"]):
+                if int(options.get("task_index", -1)) != index or options.get("split") != split:
+                    raise store.DatasetError(f"{file}: episode {e} belongs to {options.get('split')} task "
+                                             f"{options.get('task_index')}, not {split} task {index}")
+                collector = int(options.get("collector", -1))
+                if not 0 <= collector < n_train:
+                    raise store.DatasetError(f"{file}: episode {e} has no valid collector ({collector})")
+                collectors.append(collector)
+            obs = episodes["observations"]
+            parts["observations"].append(obs[:, :-1].reshape(-1, obs_dim))
+            parts["next_observations"].append(obs[:, 1:].reshape(-1, obs_dim))
+            parts["actions"].append(episodes["actions"].reshape(-1, action_dim))
+            parts["rewards"].append(episodes["rewards"].reshape(-1))
+            parts["collector"].append(np.repeat(np.asarray(collectors, np.int32), length))
+        for name in FIELDS:
+            arrays[f"{split}__{name}"] = np.stack(parts[name])
+    return arrays
+
+
+def _load_cache(path: Path, manifest: dict, obs_dim: int, action_dim: int) -> dict | None:
+    """The cached arrays if they belong to this collection and look sane, else None."""
+    file = path / store.ARRAY_CACHE
+    if not file.is_file():
+        return None
+    try:
+        with np.load(file) as npz:
+            if str(npz["collection_id"]) != manifest["collection_id"]:
+                return None
+            arrays = {key: npz[key] for key in npz.files if key != "collection_id"}
+    except Exception:  # damaged cache: rebuild it from the Minari datasets
+        return None
+    for split in store.SPLITS:
+        if any(f"{split}__{name}" not in arrays for name in FIELDS):
+            return None
+        if (arrays[f"{split}__observations"].shape[-1] != obs_dim
+                or arrays[f"{split}__actions"].shape[-1] != action_dim):
+            return None
+    return arrays

@@ -1,0 +1,270 @@
+"""On-disk layout of a collection: one Minari dataset per task, a manifest, an array cache.
+
+```
+<root>/<Family>/<scale>-seed<S>-eps<eps>/     one collection (renamed into place when complete)
+    manifest.json                             written last: its presence marks a complete collection
+    train-00-v0/ ... train-19-v0/             Eq. 9 offline datasets of the 20 training tasks
+    p_test-00-v0/ ... p_test-19-v0/           Eq. 10 context data of the 20 test tasks
+    p_train-00-v0/ ... p_train-19-v0/         p_train-style context data of the 20 test tasks
+    arrays.npz                                flat-array cache written by the loader (optional)
+```
+
+Each dataset directory is a standard Minari dataset (HDF5 storage): point `MINARI_DATASETS_PATH`
+at the collection directory and `minari.load_dataset("train-00-v0")` reads it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import warnings
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from bati.envs import TaskFamily
+
+MANIFEST = "manifest.json"
+ARRAY_CACHE = "arrays.npz"
+FORMAT_VERSION = 1
+SPLITS = ("train", "p_test", "p_train")
+DATASET_VERSION = 0  # Minari ids need a version suffix: "train-00-v0"
+DEFAULT_ROOT = Path("data")
+REQUIRED_KEYS = ("collection_id", "n_episodes", "n_context_episodes", "episode_length", "obs_dim",
+                 "action_dim", "train_tasks", "test_tasks", "datasets")
+
+
+class DatasetNotFoundError(FileNotFoundError):
+    """A collection (or one of its datasets) is not on disk; the message says how to collect it."""
+
+
+class DatasetError(ValueError):
+    """A dataset on disk is unreadable, incomplete, or does not match its family's env."""
+
+
+# --- names and paths -------------------------------------------------------------------------
+def collection_name(scale: str, seed: int, noise: float) -> str:
+    return f"{scale}-seed{seed}-eps{noise:g}"
+
+
+def collection_dir(root: str | Path, family: str, scale: str, seed: int, noise: float) -> Path:
+    """`<root>/<Family>/<scale>-seed<S>-eps<eps>` (noise already validated / defaulted)."""
+    return Path(root) / family / collection_name(scale, seed, noise)
+
+
+def dataset_name(split: str, index: int) -> str:
+    """Minari dataset id of task `index` of a split, e.g. "p_test-07-v0"."""
+    return f"{split}-{index:02d}-v{DATASET_VERSION}"
+
+
+def collect_command(family: TaskFamily, scale: str, seed: int, noise: float, root: str | Path) -> str:
+    """The exact `bati data collect ...` command that builds this collection."""
+    command = f"bati data collect --family {family.name} --scale {scale} --seed {seed}"
+    if noise != family.default_noise:
+        command += f" --noise {noise:g}"
+    if Path(root) != DEFAULT_ROOT:
+        command += f" --root {root}"
+    return command
+
+
+# --- manifest ----------------------------------------------------------------------------------
+def read_manifest(path: Path, family: TaskFamily, scale: str, seed: int, noise: float, root) -> dict:
+    """The manifest of a complete collection, or DatasetNotFoundError / DatasetError."""
+    manifest_path = path / MANIFEST
+    if not manifest_path.is_file():
+        raise DatasetNotFoundError(
+            f"no {family.name} data at {path} (scale={scale}, seed={seed}, eps={noise:g}); "
+            f"collect it with `{collect_command(family, scale, seed, noise, root)}`"
+        )
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise DatasetError(f"{manifest_path} is corrupted ({err}); delete {path} and re-run "
+                           f"`{collect_command(family, scale, seed, noise, root)}`") from err
+    redo = f"delete {path} and re-run `{collect_command(family, scale, seed, noise, root)}`"
+    expected = {"format": FORMAT_VERSION, "family": family.name, "scale": scale, "seed": seed, "noise": noise}
+    for key, value in expected.items():
+        if not isinstance(manifest, dict) or manifest.get(key) != value:
+            found = manifest.get(key) if isinstance(manifest, dict) else manifest
+            raise DatasetError(f"{manifest_path}: {key} is {found!r}, expected {value!r}; {redo}")
+    missing = [key for key in REQUIRED_KEYS if key not in manifest]
+    if missing:
+        raise DatasetError(f"{manifest_path} lacks {', '.join(missing)}; {redo}")
+    train, test = family.split_tasks(seed)
+    for name, tasks in (("train_tasks", train), ("test_tasks", test)):
+        stored = manifest[name]
+        if len(stored) != len(tasks) or not np.allclose(np.asarray(stored, float), np.asarray(tasks, float)):
+            raise DatasetError(f"{manifest_path}: its {name} are not {family.name}.split_tasks({seed}) "
+                               f"(collected with another task sampler?); {redo}")
+    return manifest
+
+
+# --- Minari io ---------------------------------------------------------------------------------
+@contextlib.contextmanager
+def minari_root(path: Path) -> Iterator[None]:
+    """Point Minari's datasets root (MINARI_DATASETS_PATH) at `path` for the duration."""
+    previous = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(Path(path).resolve())  # Minari mangles relative roots
+    try:
+        yield
+    finally:
+        if previous is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = previous
+
+
+def write_dataset(
+    directory: Path,
+    name: str,
+    family: TaskFamily,
+    task: Any,
+    noise: float,
+    observations: np.ndarray,
+    actions: np.ndarray,
+    rewards: np.ndarray,
+    episode_options: list[dict],
+    episode_seeds: list[int],
+    metadata: dict,
+) -> None:
+    """Write one task's episodes as the Minari dataset `directory/name`.
+
+    observations: (E, T + 1, obs_dim) (the last one is the final next observation);
+    actions (E, T, action_dim); rewards (E, T). `episode_options` are stored as each episode's
+    Minari `options` (task parameters, collector); `metadata` under the dataset's "bati" key.
+    """
+    import gymnasium as gym
+    import minari
+    from minari.data_collector import EpisodeBuffer
+
+    spec = replace(gym.spec(family.env_id), kwargs={"task": task, "noise": noise})
+    n_episodes, length = rewards.shape
+    truncations = np.zeros(length, dtype=bool)
+    truncations[-1] = True  # the 200-step time limit; episodes never terminate
+    buffers = [
+        EpisodeBuffer(
+            id=e,
+            seed=int(episode_seeds[e]),
+            options=episode_options[e],
+            observations=observations[e],
+            actions=actions[e],
+            rewards=rewards[e],
+            terminations=np.zeros(length, dtype=bool),
+            truncations=truncations,
+        )
+        for e in range(n_episodes)
+    ]
+    with minari_root(directory), warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # Minari nags about author e-mail etc.
+        dataset = minari.create_dataset_from_buffers(
+            dataset_id=name,
+            buffer=buffers,
+            env=spec,
+            eval_env=spec,
+            algorithm_name="bati task-conditioned SAC experts (stochastic actions)",
+            author="bati",
+            code_permalink=f"bati@{metadata.get('commit', 'unknown')}",
+            description=metadata.get("description"),
+            data_format="hdf5",
+        )
+        dataset.storage.update_metadata({"bati": metadata})
+
+
+def read_dataset(path: Path, obs_dim: int, action_dim: int, length: int) -> dict:
+    """Read a whole Minari dataset into arrays, checking shapes against the family's env.
+
+    Returns observations (E, T + 1, obs_dim) float32, actions (E, T, action_dim) float32,
+    rewards (E, T) float32, options (list of per-episode option dicts) and metadata.
+    """
+    from minari import MinariDataset
+
+    data_path = Path(path).resolve() / "data"
+    if not data_path.is_dir():
+        raise DatasetError(
+            f"{path} is missing (the collection is incomplete); delete {path.parent} and re-collect"
+        )
+    file = data_path / "main_data.hdf5"
+    try:
+        dataset = MinariDataset(data_path)
+        storage = dataset.storage
+        meta = storage.metadata
+        obs_shape = tuple(storage.observation_space.shape or ())
+        act_shape = tuple(storage.action_space.shape or ())
+        if obs_shape != (obs_dim,) or act_shape != (action_dim,):
+            raise DatasetError(
+                f"{data_path / 'metadata.json'}: observation/action spaces have shapes "
+                f"{obs_shape}/{act_shape}, but the family's env has ({obs_dim},)/({action_dim},)"
+            )
+        indices = range(storage.total_episodes)
+        episodes = list(storage.get_episodes(indices))
+        options = [m.get("options", {}) for m in storage.get_episode_metadata(indices)]
+    except DatasetError:
+        raise
+    except Exception as err:  # h5py / json / Minari errors on a damaged file
+        raise DatasetError(f"{file}: cannot read the Minari dataset ({type(err).__name__}: {err})") from err
+    if not episodes:
+        raise DatasetError(f"{file}: the dataset holds no episodes")
+    expected = {"observations": (length + 1, obs_dim), "actions": (length, action_dim), "rewards": (length,)}
+    for episode in episodes:
+        for key, shape in expected.items():
+            value = np.asarray(episode[key])
+            if value.shape != shape:
+                raise DatasetError(
+                    f"{file}: episode {episode['id']} has {key} of shape {value.shape}, expected {shape} "
+                    f"(obs_dim={obs_dim}, action_dim={action_dim}, {length} steps, from the family's env)"
+                )
+    stack = {key: np.stack([np.asarray(ep[key]) for ep in episodes]).astype(np.float32) for key in expected}
+    return {**stack, "options": options, "metadata": meta.get("bati", {})}
+
+
+# --- atomic directories -------------------------------------------------------------------------
+def partial_dir(target: Path) -> Path:
+    """A fresh temporary sibling of `target` to collect into."""
+    return target.parent / f".{target.name}.partial-{os.getpid()}-{os.urandom(4).hex()}"
+
+
+def remove_stale_partials(target: Path) -> list[Path]:
+    """Delete leftovers of crashed collections of `target` (partial dirs whose process is gone)."""
+    removed = []
+    if not target.parent.is_dir():
+        return removed
+    for candidate in target.parent.glob(f".{target.name}.partial-*"):
+        try:
+            pid = int(candidate.name.rsplit(".partial-", 1)[1].split("-")[0])
+        except (IndexError, ValueError):
+            pid = -1
+        if pid != os.getpid() and _alive(pid):
+            continue  # another process is collecting the same data right now
+        shutil.rmtree(candidate, ignore_errors=True)
+        removed.append(candidate)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """np.savez straight to a temporary file, then rename (no in-memory copy of big arrays)."""
+    tmp = path.parent / f".{path.name}.{os.getpid()}-{os.urandom(4).hex()}.tmp"
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise

@@ -1,0 +1,29 @@
+"""The context encoder shared by the encoder baselines (Recon, FOCAL, UNICORN, CSRO)."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import flax.linen as nn
+import jax.numpy as jnp
+
+from bati.nets import MLP
+
+
+class ContextEncoder(nn.Module):
+    """Per-transition MLP on (s, a, r, s'), mean-pooled over the context: (..., C, .) -> (..., latent).
+
+    With `pool=False` it returns the per-transition latents (..., C, latent).
+    """
+
+    hidden_dims: Sequence[int]
+    latent_dim: int
+
+    @nn.compact
+    def __call__(self, context: dict, pool: bool = True):
+        x = jnp.concatenate(
+            [context["observations"], context["actions"], context["rewards"][..., None], context["next_observations"]],
+            axis=-1,
+        )
+        per_transition = MLP(self.hidden_dims, self.latent_dim)(x)
+        return per_transition.mean(axis=-2) if pool else per_transition

@@ -1,0 +1,40 @@
+"""Recon (GENTLE / UNICORN-SS-0): BATI's reconstruction loss with a learned context encoder.
+
+z = encoder(context) both in training (contexts from the task's own offline data) and at test
+time; the dynamics model decodes the batch's (r, s') from (s, a, z). It is the ablation that
+isolates BATI's inference procedure (Sec. 5.3).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from bati.methods.base import MethodSpec
+from bati.methods.dynamics import DynamicsModel, context_nll
+from bati.methods.encoder import ContextEncoder
+
+
+class Recon:
+    needs_context = True
+
+    def __init__(self, spec: MethodSpec):
+        self.spec = spec
+        self.encoder = ContextEncoder(spec.encoder_dims, spec.latent_dim)
+        self.model = DynamicsModel(spec.decoder_dims, 1 + spec.obs_dim)
+
+    def init(self, key):
+        k_enc, k_model = jax.random.split(key)
+        s = self.spec
+        context = {"observations": jnp.zeros((1, 1, s.obs_dim)), "actions": jnp.zeros((1, 1, s.action_dim)),
+                   "rewards": jnp.zeros((1, 1)), "next_observations": jnp.zeros((1, 1, s.obs_dim))}
+        dummy = (jnp.zeros((1, s.obs_dim)), jnp.zeros((1, s.action_dim)), jnp.zeros((1, s.latent_dim)))
+        return {"encoder": self.encoder.init(k_enc, context), "dynamics": self.model.init(k_model, *dummy)}
+
+    def loss(self, params, batch, key):
+        z = self.encoder.apply(params["encoder"], batch["context"])
+        nll = context_nll(self.model, params["dynamics"], batch, z).mean()
+        return nll, (z, {"recon_nll": nll})
+
+    def infer(self, params, context, key):
+        return self.encoder.apply(params["encoder"], context)

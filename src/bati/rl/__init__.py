@@ -1,0 +1,1 @@
+"""Offline RL shared by every method."""

@@ -1,0 +1,139 @@
+"""Implicit Q-Learning (Kostrikov et al., 2022) conditioned on a task latent z.
+
+Shared by every method: networks read concat(s, z) (and a for Q). The latent arrives detached,
+so IQL never shapes the task representation. Continuous actions use a Gaussian actor with a
+tanh-bounded mean; discrete actions (one-hot in the data) use a categorical actor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from bati.nets import MLP, DoubleCritic, GaussianHead, gaussian_log_prob
+
+
+@dataclass(frozen=True)
+class IQLConfig:
+    hidden_dims: tuple[int, ...] = (256, 256)
+    learning_rate: float = 3e-4
+    discount: float = 0.99
+    expectile: float = 0.8
+    beta: float = 0.05
+    """Temperature: actor weights are exp(A / beta) (Table 3's 0.05 is a divisor)."""
+    max_exp_advantage: float = 100.0
+    tau: float = 0.005
+    discrete: bool = False
+
+
+class IQLState(NamedTuple):
+    actor: Any
+    critic: Any
+    target_critic: Any
+    value: Any
+    actor_opt: Any
+    critic_opt: Any
+    value_opt: Any
+
+
+def expectile_loss(diff: jax.Array, expectile: float) -> jax.Array:
+    """Asymmetric L2: |tau - 1(diff < 0)| * diff^2, with diff = Q - V."""
+    weight = jnp.where(diff > 0, expectile, 1 - expectile)
+    return weight * diff**2
+
+
+def advantage_weights(advantage: jax.Array, beta: float, max_weight: float) -> jax.Array:
+    """AWR weights exp(A / beta), clipped at `max_weight`."""
+    return jnp.minimum(jnp.exp(advantage / beta), max_weight)
+
+
+class IQL:
+    """Networks, losses and the jittable update. Batches are flat: (N, dim) arrays with z (N, d)."""
+
+    def __init__(self, obs_dim: int, latent_dim: int, action_dim: int, config: IQLConfig = IQLConfig()):
+        self.config = config
+        self.obs_dim, self.latent_dim, self.action_dim = obs_dim, latent_dim, action_dim
+        head = MLP(config.hidden_dims, action_dim) if config.discrete else GaussianHead(config.hidden_dims, action_dim)
+        self.actor_net = head
+        self.critic_net = DoubleCritic(config.hidden_dims)
+        self.value_net = MLP(config.hidden_dims, 1)
+        self.optimizer = optax.adam(config.learning_rate)
+
+    def init(self, key: jax.Array) -> IQLState:
+        k_actor, k_critic, k_value = jax.random.split(key, 3)
+        state_in = jnp.zeros((1, self.obs_dim + self.latent_dim))
+        actor = self.actor_net.init(k_actor, state_in)
+        critic = self.critic_net.init(k_critic, jnp.zeros((1, self.obs_dim + self.latent_dim + self.action_dim)))
+        value = self.value_net.init(k_value, state_in)
+        opt = self.optimizer.init
+        return IQLState(actor, critic, critic, value, opt(actor), opt(critic), opt(value))
+
+    # --- policy ---------------------------------------------------------------------------
+    def log_prob(self, actor, obs_z: jax.Array, actions: jax.Array) -> jax.Array:
+        if self.config.discrete:
+            return jnp.sum(actions * jax.nn.log_softmax(self.actor_net.apply(actor, obs_z)), axis=-1)
+        mean, log_std = self.actor_net.apply(actor, obs_z)
+        return gaussian_log_prob(actions, jnp.tanh(mean), log_std)
+
+    def act(self, actor, obs: jax.Array, z: jax.Array, key: jax.Array | None = None) -> jax.Array:
+        """Greedy action (the Gaussian's mean / the categorical's mode, one-hot) or a sample with `key`."""
+        obs_z = jnp.concatenate([obs, z], axis=-1)
+        if self.config.discrete:
+            logits = self.actor_net.apply(actor, obs_z)
+            index = jnp.argmax(logits, -1) if key is None else jax.random.categorical(key, logits)
+            return jax.nn.one_hot(index, self.action_dim)
+        mean, log_std = self.actor_net.apply(actor, obs_z)
+        if key is None:
+            return jnp.tanh(mean)
+        return jnp.clip(jnp.tanh(mean) + jnp.exp(log_std) * jax.random.normal(key, mean.shape), -1.0, 1.0)
+
+    # --- losses ---------------------------------------------------------------------------
+    def value_loss(self, value, state: IQLState, batch, z):
+        obs_z = jnp.concatenate([batch["observations"], z], -1)
+        q = self.critic_net.apply(state.target_critic, jnp.concatenate([obs_z, batch["actions"]], -1)).min(0)
+        v = self.value_net.apply(value, obs_z)[..., 0]
+        return expectile_loss(q - v, self.config.expectile).mean(), v.mean()
+
+    def actor_loss(self, actor, state: IQLState, batch, z):
+        obs_z = jnp.concatenate([batch["observations"], z], -1)
+        q = self.critic_net.apply(state.target_critic, jnp.concatenate([obs_z, batch["actions"]], -1)).min(0)
+        v = self.value_net.apply(state.value, obs_z)[..., 0]
+        weights = advantage_weights(q - v, self.config.beta, self.config.max_exp_advantage)
+        # Weighted log-likelihood of the DATASET actions (not of freshly sampled ones).
+        log_prob = self.log_prob(actor, obs_z, batch["actions"])
+        return -(jax.lax.stop_gradient(weights) * log_prob).mean(), weights.mean()
+
+    def critic_loss(self, critic, state: IQLState, batch, z):
+        next_v = self.value_net.apply(state.value, jnp.concatenate([batch["next_observations"], z], -1))[..., 0]
+        # Episodes end only by the time limit, so every transition bootstraps.
+        target = batch["rewards"] + self.config.discount * next_v
+        q = self.critic_net.apply(critic, jnp.concatenate([batch["observations"], z, batch["actions"]], -1))
+        return ((q - jax.lax.stop_gradient(target)) ** 2).mean(), q.mean()
+
+    # --- update ---------------------------------------------------------------------------
+    def update(self, state: IQLState, batch: dict, z: jax.Array) -> tuple[IQLState, dict]:
+        """One IQL step on a flat batch: value, then actor and critic, then the target."""
+        z = jax.lax.stop_gradient(z)
+        (v_loss, v_mean), grads = jax.value_and_grad(self.value_loss, has_aux=True)(state.value, state, batch, z)
+        value, value_opt = self._apply(state.value, grads, state.value_opt)
+        state = state._replace(value=value, value_opt=value_opt)
+
+        (a_loss, w_mean), grads = jax.value_and_grad(self.actor_loss, has_aux=True)(state.actor, state, batch, z)
+        actor, actor_opt = self._apply(state.actor, grads, state.actor_opt)
+
+        (c_loss, q_mean), grads = jax.value_and_grad(self.critic_loss, has_aux=True)(state.critic, state, batch, z)
+        critic, critic_opt = self._apply(state.critic, grads, state.critic_opt)
+        target_critic = optax.incremental_update(critic, state.target_critic, self.config.tau)
+
+        state = IQLState(actor, critic, target_critic, value, actor_opt, critic_opt, value_opt)
+        metrics = {"value_loss": v_loss, "actor_loss": a_loss, "critic_loss": c_loss, "q": q_mean, "v": v_mean,
+                   "adv_weight": w_mean}
+        return state, metrics
+
+    def _apply(self, params, grads, opt_state):
+        updates, opt_state = self.optimizer.update(grads, opt_state)
+        return optax.apply_updates(params, updates), opt_state

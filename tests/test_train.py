@@ -1,0 +1,108 @@
+"""Training and evaluation: smoke tests of every method on every family, resume, faults."""
+
+from __future__ import annotations
+
+import json
+
+import flax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import bati.train as train_module
+from bati.envs import FAMILY_NAMES
+from bati.evaluate import Evaluator
+from bati.methods import METHODS
+from bati.train import TrainConfig, Trainer, TrainingError, train
+
+TINY = dict(rl_hidden_dims=(32, 32), task_batch=4, batch_size=8, context_length=20, log_every=5)
+
+
+@pytest.mark.parametrize("family", FAMILY_NAMES)
+@pytest.mark.parametrize("method", sorted(METHODS))
+def test_every_method_trains_and_evaluates_on_every_family(method, family, synthetic_data):
+    data = synthetic_data(family)
+    config = TrainConfig(family=family, method=method, steps=5, **TINY).resolved()
+    trainer = Trainer(config, data)
+    state = trainer.init(jax.random.PRNGKey(0))
+    state, metrics = trainer.run_chunk(state, jax.random.PRNGKey(1), data.train, length=5)
+    assert int(state.step) == 5
+    assert all(np.isfinite(float(v)) for v in metrics.values())
+    result = Evaluator(trainer.method, trainer.iql, data, config.context_length).evaluate(state, jax.random.PRNGKey(2), 0)
+    for source in ("p_test", "p_train"):
+        assert result.returns[source].shape == (len(data.test_tasks),)
+        assert np.all(np.isfinite(result.returns[source]))
+        assert result.latents[source].shape == (len(data.test_tasks), trainer.spec.latent_dim)
+        assert np.all(result.inference_errors[source] >= 0)
+
+
+@pytest.fixture
+def point_data(monkeypatch, synthetic_data):
+    data = synthetic_data("PointGoal")
+    monkeypatch.setattr(train_module, "ensure_family_data", lambda *a, **k: data)
+    return data
+
+
+def _config(tmp_path, name, **overrides):
+    settings = {**TINY, "steps": 20, "eval_every": 10, **overrides}
+    return TrainConfig(family="PointGoal", out_dir=tmp_path / name, **settings)
+
+
+@pytest.mark.parametrize("method", ["bati", "recon"])
+def test_train_writes_a_run_directory(tmp_path, point_data, method):
+    summary = train(_config(tmp_path, method, method=method), show_progress=False)
+    out = tmp_path / method
+    for name in ("config.json", "metrics.jsonl", "eval.jsonl", "checkpoint.msgpack", "eval.json"):
+        assert (out / name).exists(), name
+    assert [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()] == [5, 10, 15, 20]
+    assert [e["step"] for e in summary["curve"]] == [10, 20]
+    assert json.loads((out / "eval.json").read_text())["p_test_return"] == summary["p_test_return"]
+
+
+def _params(path, template):
+    return flax.serialization.from_bytes(template, path.read_bytes())
+
+
+def test_resume_after_interruption_gives_the_same_parameters(tmp_path, point_data):
+    train(_config(tmp_path, "straight"), show_progress=False)
+    train(_config(tmp_path, "resumed", steps=10), show_progress=False)  # "killed" after step 10
+    train(_config(tmp_path, "resumed"), show_progress=False)  # resumes from its checkpoint
+    template = Trainer(_config(tmp_path, "x").resolved(), point_data).init(jax.random.PRNGKey(0))
+    straight = _params(tmp_path / "straight" / "checkpoint.msgpack", template)
+    resumed = _params(tmp_path / "resumed" / "checkpoint.msgpack", template)
+    assert int(resumed.step) == 20
+    jax.tree_util.tree_map(np.testing.assert_array_equal, straight, resumed)
+    steps = [json.loads(line)["step"] for line in (tmp_path / "resumed" / "metrics.jsonl").read_text().splitlines()]
+    assert steps == [5, 10, 15, 20]
+
+
+def test_same_config_and_seed_reproduce_the_same_numbers(tmp_path, point_data):
+    a = train(_config(tmp_path, "a"), show_progress=False)
+    b = train(_config(tmp_path, "b"), show_progress=False)
+    assert a["p_test_return"] == b["p_test_return"] and a["p_train_task_returns"] == b["p_train_task_returns"]
+
+
+def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(tmp_path, monkeypatch, point_data):
+    config = _config(tmp_path, "nan", steps=10)
+    train(config, show_progress=False)
+    before = (tmp_path / "nan" / "checkpoint.msgpack").read_bytes()
+    poisoned = point_data.train.replace(rewards=jnp.full_like(point_data.train.rewards, jnp.nan))
+    monkeypatch.setattr(train_module, "ensure_family_data", lambda *a, **k: type(point_data)(
+        **{**point_data.__dict__, "train": poisoned}))
+    with pytest.raises(TrainingError, match="non-finite"):
+        train(_config(tmp_path, "nan", steps=20), show_progress=False)
+    assert (tmp_path / "nan" / "checkpoint.msgpack").read_bytes() == before
+
+
+def test_a_run_directory_of_another_family_or_method_is_refused(tmp_path, point_data):
+    train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
+    with pytest.raises(ValueError, match="method: 'bati' there, 'recon' now"):
+        train(_config(tmp_path, "run", steps=5, eval_every=5, method="recon"), show_progress=False)
+
+
+def test_a_checkpoint_with_other_networks_is_refused(tmp_path, point_data):
+    train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
+    config = _config(tmp_path, "run", steps=10, eval_every=5, rl_hidden_dims=(16, 16))
+    with pytest.raises(ValueError, match="does not match this run's networks"):
+        train(config, show_progress=False)
