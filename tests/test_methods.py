@@ -110,3 +110,20 @@ def test_bati_train_latent_is_a_sample_of_the_batch_task_entry():
 def test_unknown_method_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown method 'nope'"):
         make_method("nope", SPEC)
+
+
+def test_reward_only_inference_ignores_the_state_terms():
+    from bati.methods.dynamics import context_nll
+
+    class Model:
+        def apply(self, params, obs, actions, z):
+            mean = jnp.concatenate([z[..., :1], jnp.zeros_like(obs)], -1)
+            return mean, jnp.zeros_like(mean)
+
+    context = {"observations": jnp.zeros((2, 2)), "next_observations": jnp.full((2, 2), 3.0),
+               "rewards": jnp.array([1.0, 2.0]), "actions": jnp.zeros((2, 1))}
+    z = jnp.array([0.5, 0.0, 0.0])
+    # reward term: ((1 - 0.5)^2 + (2 - 0.5)^2) / 2; each state dim adds 3^2
+    np.testing.assert_allclose(context_nll(Model(), None, context, z, reward_only=True), (0.25 + 2.25) / 2)
+    np.testing.assert_allclose(context_nll(Model(), None, context, z), (0.25 + 2.25) / 2 + 18.0)
+    assert make_method("bati-r", SPEC).reward_only_inference and not make_method("bati", SPEC).reward_only_inference

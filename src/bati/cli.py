@@ -220,10 +220,10 @@ class Train:
 
 @dataclass
 class Run:
-    """The main job: data with the shipped experts, train BATI and Recon, evaluate under context shift."""
+    """The main job: data with the shipped experts, train BATI, BATI-R and Recon, evaluate under context shift."""
 
     family: str = "PointGoal"
-    methods: tuple[str, ...] = ("bati", "recon")
+    methods: tuple[str, ...] = ("bati", "bati-r", "recon")
     seeds: tuple[int, ...] = (0,)
     scale: Literal["quick", "paper"] = "quick"
     steps: int | None = None

@@ -56,7 +56,10 @@ class Evaluator:
     def infer_latents(self, method_params, key) -> dict[str, np.ndarray]:
         keys = jax.random.split(key, len(SOURCES) + 1)
         latents = {s: np.asarray(self.infer(method_params, getattr(self.data, s), k)) for s, k in zip(SOURCES, keys)}
-        latents["reference"] = np.asarray(self.infer(method_params, self.data.train, keys[-1]))
+        if hasattr(self.method, "task_latents"):  # methods with a latent per training task (BATI)
+            latents["reference"] = np.asarray(self.method.task_latents(method_params))
+        else:
+            latents["reference"] = np.asarray(self.infer(method_params, self.data.train, keys[-1]))
         return latents
 
     def evaluate(self, state, key, seed: int) -> EvalResult:

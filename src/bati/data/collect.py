@@ -29,9 +29,8 @@ from typing import Any
 import numpy as np
 
 from bati.data import store
-from bati.io import git_commit
 from bati.envs import EPISODE_LENGTH, Task, TaskFamily, get_family
-from bati.io import atomic_write_json
+from bati.io import atomic_write_json, git_commit
 
 N_TRAIN = 20
 N_TEST = 20

@@ -43,6 +43,24 @@ def make_env(name: str, task: Task, noise: float | None = None, **kwargs) -> gym
     return get_family(name).make_env(task, noise, **kwargs)
 
 
+def _quiet_mujoco_deprecation() -> None:
+    """gymnasium's HalfCheetah XML uses `settotalmass`, which MuJoCo >= 3.3 warns about on every
+    env construction (to stdout). Drop that one message; route other MuJoCo warnings to Python's."""
+    try:
+        import mujoco
+    except ImportError:
+        return
+
+    def on_warning(message: str) -> None:
+        if "settotalmass" not in message:
+            import warnings
+
+            warnings.warn(f"MuJoCo: {message}", RuntimeWarning, stacklevel=2)
+
+    if hasattr(mujoco, "set_mju_user_warning"):
+        mujoco.set_mju_user_warning(on_warning)
+
+
 def _register() -> None:
     for name, (module, _, env_class) in _FAMILIES.items():
         env_id = f"bati/{name}-v0"
@@ -51,5 +69,6 @@ def _register() -> None:
 
 
 _register()
+_quiet_mujoco_deprecation()
 
 __all__ = ["EPISODE_LENGTH", "FAMILY_NAMES", "Task", "TaskError", "TaskFamily", "get_family", "make_env"]

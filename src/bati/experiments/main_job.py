@@ -26,7 +26,7 @@ from bati.train import TrainConfig, train
 @dataclass
 class MainJobConfig:
     family: str = "PointGoal"
-    methods: tuple[str, ...] = ("bati", "recon")
+    methods: tuple[str, ...] = ("bati", "bati-r", "recon")
     seeds: tuple[int, ...] = (0,)
     scale: str = "quick"
     steps: int | None = None

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 from bati.methods.base import MethodSpec, TaskInference
-from bati.methods.bati import BATI
+from bati.methods.bati import BATI, BATIReward
 from bati.methods.recon import Recon
 
-METHODS = {"bati": BATI, "recon": Recon}
+METHODS = {"bati": BATI, "bati-r": BATIReward, "recon": Recon}
 
 
 def make_method(name: str, spec: MethodSpec) -> TaskInference:

@@ -17,21 +17,40 @@ from bati.nets import MLP
 MIN_LOG_VAR, MAX_LOG_VAR = -10.0, 5.0
 
 
-class DynamicsModel(nn.Module):
-    """(s, a, z) -> mean g and log-variance h of (r, s' - s)."""
+class GaussianRegressor(nn.Module):
+    """x -> (mean, soft-bounded log-variance) of an out_dim Gaussian."""
 
     hidden_dims: Sequence[int]
     out_dim: int
 
     @nn.compact
-    def __call__(self, obs, actions, z):
-        h = MLP(self.hidden_dims, activate_final=True)(jnp.concatenate([obs, actions, z], -1))
+    def __call__(self, x):
+        h = MLP(self.hidden_dims, activate_final=True)(x)
         mean = nn.Dense(self.out_dim)(h)
         log_var = nn.Dense(self.out_dim)(h)
         # Soft bounds keep the variance sane without killing gradients.
         log_var = MAX_LOG_VAR - nn.softplus(MAX_LOG_VAR - log_var)
         log_var = MIN_LOG_VAR + nn.softplus(log_var - MIN_LOG_VAR)
         return mean, log_var
+
+
+class DynamicsModel(nn.Module):
+    """(s, a, z) -> mean g and log-variance h of (r, s' - s).
+
+    The reward and the state change get separate trunks: near-deterministic state dimensions
+    drive their variance down and their NLL gradients up, which would otherwise drown the
+    (noisy) reward's dependence on z in a shared trunk.
+    """
+
+    hidden_dims: Sequence[int]
+    out_dim: int
+
+    @nn.compact
+    def __call__(self, obs, actions, z):
+        x = jnp.concatenate([obs, actions, z], -1)
+        reward_mean, reward_log_var = GaussianRegressor(self.hidden_dims, 1)(x)
+        state_mean, state_log_var = GaussianRegressor(self.hidden_dims, self.out_dim - 1)(x)
+        return (jnp.concatenate([reward_mean, state_mean], -1), jnp.concatenate([reward_log_var, state_log_var], -1))
 
 
 def transition_targets(transitions: dict) -> jax.Array:
@@ -45,8 +64,14 @@ def reconstruction_nll(mean: jax.Array, log_var: jax.Array, target: jax.Array) -
     return jnp.sum((target - mean) ** 2 * jnp.exp(-log_var) + log_var, axis=-1)
 
 
-def context_nll(model: DynamicsModel, params, transitions: dict, z: jax.Array) -> jax.Array:
-    """Mean Eq. 7 NLL of transitions (..., C, dim) under latents z (..., latent) broadcast over C."""
+def context_nll(model: DynamicsModel, params, transitions: dict, z: jax.Array, reward_only: bool = False) -> jax.Array:
+    """Mean Eq. 7 NLL of transitions (..., C, dim) under latents z (..., latent) broadcast over C.
+
+    With `reward_only`, only the reward's term of Eq. 7 (the first output dimension) counts.
+    """
     z = jnp.broadcast_to(z[..., None, :], transitions["observations"].shape[:-1] + z.shape[-1:])
     mean, log_var = model.apply(params, transitions["observations"], transitions["actions"], z)
-    return reconstruction_nll(mean, log_var, transition_targets(transitions)).mean(-1)
+    target = transition_targets(transitions)
+    if reward_only:
+        mean, log_var, target = mean[..., :1], log_var[..., :1], target[..., :1]
+    return reconstruction_nll(mean, log_var, target).mean(-1)

@@ -1,0 +1,84 @@
+"""Experts: SAC training smoke test on PointGoal, exact resume, the policy interface, cards."""
+
+from __future__ import annotations
+
+import flax
+import jax
+import numpy as np
+import pytest
+
+from bati.envs import TaskError
+from bati.experts import load
+from bati.experts.card import write_card
+from bati.experts.train import ExpertTrainConfig, train_expert
+
+SMALL = dict(num_envs=2, start_steps=200, eval_every=400, checkpoint_every=400, eval_tasks=2)
+
+
+def _train(tmp_path, name, total_steps):
+    config = ExpertTrainConfig("PointGoal", total_steps=total_steps, out_dir=tmp_path / name,
+                               export_dir=tmp_path / f"zoo-{name}", **SMALL)
+    return train_expert(config, show_progress=False)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    tmp_path = tmp_path_factory.mktemp("experts")
+    _train(tmp_path, "straight", 800)
+    _train(tmp_path, "resumed", 400)  # interrupted after the first checkpoint ...
+    _train(tmp_path, "resumed", 800)  # ... and resumed
+    return tmp_path
+
+
+def test_training_writes_checkpoints_metrics_and_an_exported_expert(trained):
+    run = trained / "straight"
+    assert (run / "checkpoint.npz").exists() and (run / "config.json").exists()
+    assert len((run / "metrics.jsonl").read_text().splitlines()) == 2
+    expert = load("PointGoal", trained / "zoo-straight")
+    assert expert.meta["train_steps"] == 800
+
+
+def test_resumed_training_gives_the_same_expert_as_an_uninterrupted_run(trained):
+    a = load("PointGoal", trained / "zoo-straight").actor_params
+    b = load("PointGoal", trained / "zoo-resumed").actor_params
+    jax.tree_util.tree_map(np.testing.assert_array_equal, a, b)
+
+
+def test_policy_interface_single_batched_deterministic_and_stochastic(trained):
+    expert = load("PointGoal", trained / "zoo-straight")
+    single = expert(np.zeros(2), [0.6, 0.8])
+    assert single.shape == (2,) and np.all(np.abs(single) <= 1)
+    batch = expert(np.zeros((3, 2)), [[1.0, 0.0], [0.6, 0.8], [-1.0, 0.0]])
+    assert batch.shape == (3, 2)
+    np.testing.assert_allclose(batch[1], single, rtol=1e-5)
+    broadcast = expert(np.zeros((3, 2)), [0.6, 0.8])
+    np.testing.assert_allclose(broadcast, np.repeat(single[None], 3, 0), rtol=1e-5)
+    s1 = expert(np.zeros((3, 2)), [0.6, 0.8], deterministic=False, key=jax.random.PRNGKey(0))
+    s2 = expert(np.zeros((3, 2)), [0.6, 0.8], deterministic=False, key=jax.random.PRNGKey(1))
+    assert not np.allclose(s1, s2)
+    with pytest.raises(ValueError, match="needs a PRNG key"):
+        expert(np.zeros(2), [0.6, 0.8], deterministic=False)
+    with pytest.raises(TaskError):
+        expert(np.zeros(2), [0.0, -1.0])
+
+
+def test_card_reports_returns_on_train_and_test_tasks_and_the_gap(trained):
+    card = write_card("PointGoal", seed=0, zoo_dir=trained / "zoo-straight")
+    assert len(card["train_returns"]) == 20 and len(card["test_returns"]) == 20
+    assert card["task_specificity_gap"] == pytest.approx(
+        card["oracle_test_return"] - card["most_different_expert_test_return"])
+    assert (trained / "zoo-straight" / "PointGoal" / "card.md").read_text().startswith("# Expert card: PointGoal")
+
+
+def test_missing_expert_and_mismatched_run_directory_are_clear_errors(tmp_path, trained):
+    with pytest.raises(FileNotFoundError, match="bati experts train --family PointGoal"):
+        load("PointGoal", tmp_path)
+    config = ExpertTrainConfig("PointGoal", total_steps=400, out_dir=trained / "straight", seed=3,
+                               export_dir=tmp_path, **SMALL)
+    with pytest.raises(ValueError, match="seed: 0 there, 3 now"):
+        train_expert(config, show_progress=False)
+
+
+def test_shipped_experts_load():
+    expert = load("PointGoal")
+    assert expert(np.zeros(2), [1.0, 0.0]).shape == (2,)
