@@ -106,3 +106,20 @@ def test_a_checkpoint_with_other_networks_is_refused(tmp_path, point_data):
     config = _config(tmp_path, "run", steps=10, eval_every=5, rl_hidden_dims=(16, 16))
     with pytest.raises(ValueError, match="does not match this run's networks"):
         train(config, show_progress=False)
+
+
+def test_likelihood_split_reports_errors_for_each_part_of_eq8(tmp_path, monkeypatch, point_data):
+    import bati.report.likelihood as likelihood
+
+    monkeypatch.setattr(likelihood, "load_family_data", lambda *a, **k: point_data)
+    train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
+    report = likelihood.likelihood_split(tmp_path / "run", context_length=20)
+    max_distance = 2.0  # PointGoal goals lie on the unit circle
+    for source in ("p_train", "p_test"):
+        for part in ("full", "reward", "state"):
+            assert 0.0 <= report[f"{source}_{part}_error"] <= max_distance
+            assert 0.0 <= report[f"{source}_{part}_picks_collector"] <= 1.0
+    assert "| p_test | reward |" in likelihood.likelihood_split_markdown(report)
+    train(_config(tmp_path, "recon", steps=5, eval_every=5, method="recon"), show_progress=False)
+    with pytest.raises(ValueError, match="no task table"):
+        likelihood.likelihood_split(tmp_path / "recon", context_length=20)

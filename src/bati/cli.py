@@ -242,7 +242,20 @@ class Run:
                       "(results.json, results.md, learning_curves.png)")
 
 
-COMMANDS = {"envs": Envs, "experts": Experts, "data": Data, "train": Train, "run": Run}
+@dataclass
+class Likelihood:
+    """For a BATI run: task-inference error of Eq. 8 with the full, reward-only and state-only NLL."""
+
+    run_dir: Path
+    context_length: int = 200
+
+    def run(self) -> None:
+        from bati.report.likelihood import likelihood_split, likelihood_split_markdown
+
+        console.print(Markdown(likelihood_split_markdown(likelihood_split(self.run_dir, self.context_length))))
+
+
+COMMANDS = {"envs": Envs, "experts": Experts, "data": Data, "train": Train, "run": Run, "likelihood": Likelihood}
 
 
 def main(argv: list[str] | None = None) -> int:
