@@ -58,6 +58,7 @@ BAD_INPUT = [
     (["--family", "PointGoal", "--task", "0", "-1"], ["[0.0, -1.0]", "angle in [0, pi]"]),
     (["--family", "HalfCheetahVel", "--task", "1", "--noise", "-1"], ["eps=-1", "[0, inf]"]),
     (["--family", "HalfCheetahDir", "--task", "1", "--noise", "1.5"], ["eps=1.5", "[0, 1]"]),
+    (["--noise", "-2"], ["eps=-2", "[0, inf]"]),
 ]
 
 

@@ -39,6 +39,9 @@ class Envs:
 
         names = [self.family] if self.family else list(FAMILY_NAMES)
         families = [get_family(name) for name in names]
+        if self.noise is not None:
+            for family in families:
+                family.validate_noise(self.noise)
         table = Table(title="bati task families")
         table.add_column("family", no_wrap=True)
         table.add_column("gymnasium id", no_wrap=True)
