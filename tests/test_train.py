@@ -123,3 +123,16 @@ def test_likelihood_split_reports_errors_for_each_part_of_eq8(tmp_path, monkeypa
     train(_config(tmp_path, "recon", steps=5, eval_every=5, method="recon"), show_progress=False)
     with pytest.raises(ValueError, match="no task table"):
         likelihood.likelihood_split(tmp_path / "recon", context_length=20)
+
+
+def test_training_step_vmaps_over_seeds(synthetic_data):
+    data = synthetic_data("PointGoal")
+    trainer = Trainer(TrainConfig(family="PointGoal", method="bati", steps=3, **TINY).resolved(), data)
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    states = jax.vmap(trainer.init)(keys)
+    run = jax.jit(jax.vmap(lambda s, k: trainer._run_chunk(s, k, data.train, 3)))
+    states, metrics = run(states, keys)
+    assert metrics["critic_loss"].shape == (2,)
+    single, _ = trainer.run_chunk(trainer.init(keys[1]), keys[1], data.train, length=3)
+    np.testing.assert_allclose(states.method["table"][1], single.method["table"], rtol=1e-4, atol=1e-5)
+    assert not np.allclose(states.method["table"][0], states.method["table"][1])
