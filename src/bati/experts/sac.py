@@ -13,7 +13,6 @@ from typing import Any, NamedTuple
 import flax
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 
 from bati.nets import DoubleCritic, GaussianHead
@@ -150,7 +149,3 @@ def state_to_bytes(state: SACState) -> bytes:
 
 def state_from_bytes(template: SACState, data: bytes) -> SACState:
     return flax.serialization.from_bytes(template, data)
-
-
-def numpy_tree(tree):
-    return jax.tree_util.tree_map(np.asarray, tree)

@@ -101,7 +101,6 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
     probe = family.make_env(family.sample_tasks(1, seed=0)[0], noise=0.0)
     obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
     sac = SAC(obs_dim, family.task_dim, action_dim, config.sac)
-    n_iters_per_episode = EPISODE_LENGTH
     updates_per_iter = int(round(config.num_envs * config.updates_per_step))
 
     key = jax.random.PRNGKey(config.seed)
@@ -133,7 +132,7 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
                 obs.append(env.reset(seed=config.seed * 1_000_003 + episode * config.num_envs + i)[0])
             obs = np.stack(obs).astype(np.float32)
             metrics = {}
-            for _ in range(n_iters_per_episode):
+            for _ in range(EPISODE_LENGTH):
                 if steps < config.start_steps:
                     actions = rng.uniform(-1.0, 1.0, size=(config.num_envs, action_dim)).astype(np.float32)
                 else:
