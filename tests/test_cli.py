@@ -89,3 +89,19 @@ def test_subprocess_bad_family_is_a_one_line_error():
     # MuJoCo may print deprecation warnings to stderr; judge the lines of our error only
     stderr = "\n".join(line for line in result.stderr.splitlines() if not line.startswith("WARNING"))
     assert_one_line_error(result.stdout, stderr, "'NoSuchFamily'", "PointGoal")
+
+
+def test_run_with_an_unknown_method_fails_before_any_work(capsys, tmp_path):
+    code = main(["run", "--methods", "bati", "nope", "--data-root", str(tmp_path / "data")])
+    out, err = capsys.readouterr()
+    assert code == 2
+    assert_one_line_error(out, err, "'nope'", "focal", "all")
+    assert not (tmp_path / "data").exists()  # no data collected
+
+
+def test_run_methods_all_means_every_method():
+    from bati.experiments.main_job import resolve_methods
+    from bati.methods import METHODS
+
+    assert resolve_methods(("all",)) == list(METHODS)
+    assert resolve_methods(("recon", "bati", "recon")) == ["recon", "bati"]

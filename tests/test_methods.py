@@ -1,4 +1,4 @@
-"""BATI and Recon: Eq. 7 against hand computation, Eq. 8 inference, learning on a toy family."""
+"""Every method's loss against hand computations, inference on a toy family, learning on toy data."""
 
 from __future__ import annotations
 
@@ -26,6 +26,12 @@ def toy_transitions(task_ids, n, seed, noise=0.3):
     rewards = THETAS[task_ids][:, None] + 0.5 * actions[..., 0] + noise * rng.normal(size=(len(task_ids), n))
     return {"observations": jnp.asarray(obs), "actions": jnp.asarray(actions),
             "rewards": jnp.asarray(rewards, jnp.float32), "next_observations": jnp.asarray(obs + 0.1 * actions + 0.05 * rng.normal(size=obs.shape), jnp.float32)}
+
+
+def toy_expert_actions(obs, task_ids):
+    """The toy family's expert: a = 0.4 theta_task, whatever the state. Shape (T, n, 1)."""
+    return jnp.broadcast_to(jnp.asarray(0.4 * THETAS[np.asarray(task_ids)], jnp.float32)[:, None, None],
+                            obs.shape[:2] + (1,))
 
 
 def test_reconstruction_nll_matches_hand_computation():
@@ -78,17 +84,20 @@ def _fit(method, steps=300, seed=0):
     for i in range(steps):
         batch = toy_transitions(np.arange(4), n=64, seed=100 + i)
         batch["task_ids"] = jnp.arange(4)
+        batch["task_arrays"] = jnp.asarray(THETAS[:, None], jnp.float32)
         batch["context"] = toy_transitions(np.arange(4), n=32, seed=10_000 + i)
+        batch["positive_context"] = toy_transitions(np.arange(4), n=32, seed=20_000 + i)
+        batch["expert_actions"] = toy_expert_actions(batch["observations"], np.arange(4))
         params, opt_state, loss = step(params, opt_state, batch, jax.random.PRNGKey(i))
         losses.append(float(loss))
     return params, losses
 
 
-@pytest.mark.parametrize("name", ["bati", "recon"])
-def test_reconstruction_loss_goes_down_and_inference_finds_the_task(name):
+@pytest.mark.parametrize("name", ["bati", "recon", "unicorn", "focal", "csro"])
+def test_loss_goes_down_and_inference_finds_the_task(name):
     method = make_method(name, SPEC)
     params, losses = _fit(method)
-    assert np.mean(losses[-20:]) < np.mean(losses[:20]) - 1.0
+    assert np.mean(losses[-20:]) < np.mean(losses[:20]) - 0.5
     # Reference latents from each task's own contexts; inferred latents of fresh contexts must be nearest
     # to their own task's reference.
     reference = method.infer(params, toy_transitions(np.arange(4), n=100, seed=5), jax.random.PRNGKey(1))
@@ -127,3 +136,131 @@ def test_reward_only_inference_ignores_the_state_terms():
     np.testing.assert_allclose(context_nll(Model(), None, context, z, reward_only=True), (0.25 + 2.25) / 2)
     np.testing.assert_allclose(context_nll(Model(), None, context, z), (0.25 + 2.25) / 2 + 18.0)
     assert make_method("bati-r", SPEC).reward_only_inference and not make_method("bati", SPEC).reward_only_inference
+
+
+# --- the baselines' losses -----------------------------------------------------------------------
+def test_focal_metric_loss_matches_hand_computation():
+    from bati.methods.focal import metric_loss
+
+    z = jnp.array([[0.0, 0.0], [0.0, 1.0], [3.0, 0.0], [3.0, 1.0]])
+    labels = jnp.array([0, 0, 1, 1])
+    # Same-task pairs (0,1), (2,3): squared distance 1 each. Other pairs: 9, 10, 10, 9.
+    push = np.mean([1 / 9.1, 1 / 10.1, 1 / 10.1, 1 / 9.1])
+    np.testing.assert_allclose(metric_loss(z, labels, beta=1.0, eps=0.1), 1.0 + push, rtol=1e-6)
+    np.testing.assert_allclose(metric_loss(z, labels, beta=2.0, eps=0.1), 1.0 + 2 * push, rtol=1e-6)
+
+
+def test_club_bound_on_a_gaussian_toy_with_known_mutual_information():
+    from bati.methods.csro import club_estimate
+    from bati.nets import gaussian_log_prob
+
+    # x ~ N(0, 1), z = rho x + sqrt(1 - rho^2) e: I(z; x) = -log(1 - rho^2) / 2. With the true
+    # q(z | x) = N(rho x, 1 - rho^2), CLUB = E[(z - rho x')^2] / (2 (1 - rho^2)) - 1/2 = rho^2 / (1 - rho^2).
+    rho, n = 0.8, 400_000
+    kx, ke, kp = jax.random.split(jax.random.PRNGKey(0), 3)
+    x = jax.random.normal(kx, (n, 1))
+    z = rho * x + np.sqrt(1 - rho**2) * jax.random.normal(ke, (n, 1))
+    log_q = lambda z, x: gaussian_log_prob(z, rho * x, jnp.full_like(x, 0.5 * np.log(1 - rho**2)))
+    club = float(club_estimate(log_q, z, x, x[jax.random.permutation(kp, n)]))
+    np.testing.assert_allclose(club, rho**2 / (1 - rho**2), rtol=0.03)
+    assert club >= -0.5 * np.log(1 - rho**2)  # an upper bound on I(z; x)
+
+
+def _baseline_batch(seed=0):
+    batch = toy_transitions(np.arange(4), n=16, seed=seed)
+    batch["task_ids"] = jnp.arange(4)
+    batch["task_arrays"] = jnp.asarray(THETAS[:, None], jnp.float32)
+    batch["context"] = toy_transitions(np.arange(4), n=8, seed=seed + 1)
+    batch["positive_context"] = toy_transitions(np.arange(4), n=8, seed=seed + 2)
+    batch["expert_actions"] = toy_expert_actions(batch["observations"], np.arange(4))
+    return batch
+
+
+def test_csro_fits_q_on_detached_latents_and_the_encoder_on_a_frozen_q():
+    method = make_method("csro", SPEC)
+    params = method.init(jax.random.PRNGKey(0))
+    batch = _baseline_batch()
+
+    def grads(weight):
+        method.weight = weight
+        return jax.grad(lambda p: method.loss(p, batch, jax.random.PRNGKey(1))[0])(params)
+
+    small, large = grads(0.0), grads(100.0)
+    # q's gradient is its likelihood's alone: the CLUB weight does not reach it.
+    jax.tree_util.tree_map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), small["club"], large["club"])
+    # The encoder's gradient does depend on the CLUB term.
+    leaves = zip(jax.tree_util.tree_leaves(small["encoder"]), jax.tree_util.tree_leaves(large["encoder"]))
+    assert any(not np.allclose(a, b) for a, b in leaves)
+
+
+def test_table3_weights_per_family():
+    import dataclasses
+
+    for family, unicorn, club in [("AntDir", 0.15, 5.0), ("HalfCheetahVel", 0.15, 1.0), ("HalfCheetahDir", 0.15, 1.0),
+                                  ("HopperParam", 1.5, 2.5), ("WalkerParam", 1.5, 2.5)]:
+        spec = dataclasses.replace(SPEC, family=family)
+        assert make_method("unicorn", spec).weight == unicorn
+        assert make_method("csro", spec).weight == club
+
+
+def test_unicorn_loss_is_reconstruction_plus_weighted_metric_loss():
+    method = make_method("unicorn", SPEC)
+    params = method.init(jax.random.PRNGKey(0))
+    loss, (z, metrics) = method.loss(params, _baseline_batch(), jax.random.PRNGKey(1))
+    np.testing.assert_allclose(loss, metrics["recon_nll"] + 0.15 * metrics["metric_loss"], rtol=1e-6)
+    assert z.shape == (4, SPEC.latent_dim)
+
+
+def test_oracle_latent_is_the_true_task_array():
+    method = make_method("oracle", SPEC)
+    assert method.spec.latent_dim == SPEC.task_dim
+    batch = _baseline_batch()
+    _, (z, _) = method.loss(method.init(jax.random.PRNGKey(0)), batch, jax.random.PRNGKey(1))
+    np.testing.assert_array_equal(z, batch["task_arrays"])
+    context = {**batch["context"], "task_arrays": batch["task_arrays"][::-1]}
+    np.testing.assert_array_equal(method.infer({}, context, jax.random.PRNGKey(2)), batch["task_arrays"][::-1])
+
+
+def test_dpt_transformer_is_causal():
+    from bati.methods.dpt import CausalTransformer
+
+    net = CausalTransformer(model_dim=16, num_layers=2, num_heads=2, max_length=10)
+    tokens = jax.random.normal(jax.random.PRNGKey(0), (3, 10, 5))
+    params = net.init(jax.random.PRNGKey(1), tokens)
+    changed = tokens.at[:, 6:].set(7.0)  # change only the tokens after position 5
+    out, out_changed = net.apply(params, tokens), net.apply(params, changed)
+    np.testing.assert_allclose(out[:, :6], out_changed[:, :6], atol=1e-5)
+    assert not np.allclose(out[:, 6:], out_changed[:, 6:])
+
+
+def test_dpt_learns_the_experts_action_from_the_context():
+    method = make_method("dpt", SPEC)
+    params, losses = _fit(method, steps=300)
+    assert np.mean(losses[-20:]) < np.mean(losses[:20]) - 0.5
+    context = toy_transitions(np.arange(4), n=32, seed=7)
+    z = method.infer(params, context, jax.random.PRNGKey(0))
+    actions = np.asarray(method.act(params, jnp.zeros((4, 2)), z)[:, 0])
+    # Each context's predicted action is nearest to its own task's expert action.
+    np.testing.assert_array_equal(np.argmin(np.abs(actions[:, None] - 0.4 * THETAS[None]), axis=1), np.arange(4))
+
+
+def test_dpt_refuses_discrete_actions():
+    import dataclasses
+
+    with pytest.raises(ValueError, match="continuous actions"):
+        make_method("dpt", dataclasses.replace(SPEC, discrete_actions=True))
+
+
+def test_csro_club_term_ignores_a_common_shift_of_the_latents():
+    method = make_method("csro", SPEC)
+    params = method.init(jax.random.PRNGKey(0))
+    batch = _baseline_batch()
+    # Shift every latent by the same vector: the encoder's last bias.
+    encoder = params["encoder"]["params"]["MLP_0"]
+    last = sorted(encoder)[-1]
+    shifted = jax.tree_util.tree_map(lambda x: x, params)
+    shifted["encoder"]["params"]["MLP_0"][last]["bias"] = encoder[last]["bias"] + 5.0
+    _, (_, metrics) = method.loss(params, batch, jax.random.PRNGKey(1))
+    _, (_, metrics_shifted) = method.loss(shifted, batch, jax.random.PRNGKey(1))
+    np.testing.assert_allclose(metrics_shifted["club"], metrics["club"], atol=1e-5)
+    np.testing.assert_allclose(metrics_shifted["metric_loss"], metrics["metric_loss"], rtol=1e-5)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import bati.train as train_module
-from bati.envs import FAMILY_NAMES
+from bati.envs import FAMILY_NAMES, get_family
 from bati.evaluate import Evaluator
 from bati.methods import METHODS
 from bati.train import TrainConfig, Trainer, TrainingError, train
@@ -136,3 +136,30 @@ def test_training_step_vmaps_over_seeds(synthetic_data):
     single, _ = trainer.run_chunk(trainer.init(keys[1]), keys[1], data.train, length=3)
     np.testing.assert_allclose(states.method["table"][1], single.method["table"], rtol=1e-4, atol=1e-5)
     assert not np.allclose(states.method["table"][0], states.method["table"][1])
+
+
+def _trained(method, data, steps=5):
+    config = TrainConfig(family=data.family, method=method, steps=steps, **TINY).resolved()
+    trainer = Trainer(config, data)
+    start = trainer.init(jax.random.PRNGKey(0))
+    state, _ = trainer.run_chunk(start, jax.random.PRNGKey(1), data.train, length=steps)
+    return trainer, start, state
+
+
+def test_dpt_is_its_own_policy_so_iql_is_left_untouched(synthetic_data):
+    trainer, start, state = _trained("dpt", synthetic_data("PointGoal"))
+    same = jax.tree_util.tree_map(lambda a, b: bool(jnp.array_equal(a, b)), start.iql, state.iql)
+    assert all(jax.tree_util.tree_leaves(same))
+    changed = jax.tree_util.tree_map(lambda a, b: bool(jnp.array_equal(a, b)), start.method, state.method)
+    assert not all(jax.tree_util.tree_leaves(changed))
+
+
+def test_oracle_infers_the_true_task_whatever_the_context(synthetic_data):
+    data = synthetic_data("PointGoal")
+    trainer, _, state = _trained("oracle", data)
+    result = Evaluator(trainer.method, trainer.iql, data, 20).evaluate(state, jax.random.PRNGKey(2), 0)
+    for source in ("p_test", "p_train"):
+        np.testing.assert_allclose(result.latents[source], data.test_task_arrays, rtol=1e-6)
+        # nearest training task to the true one: the smallest distance there is
+        distances = get_family(data.family).distance_matrix(data.test_tasks, data.train_tasks)
+        np.testing.assert_allclose(result.inference_errors[source], distances.min(axis=1))

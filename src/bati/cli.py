@@ -199,10 +199,11 @@ class Train:
 
     family: str = "PointGoal"
     method: str = "bati"
+    """bati, bati-r, recon, unicorn, csro, focal, dpt or oracle."""
     seed: int = 0
     scale: Literal["quick", "paper"] = "quick"
     steps: int | None = None
-    """Gradient steps (default: quick 4k, paper 100k)."""
+    """Gradient steps (default: quick 3k, paper 100k)."""
     noise: float | None = None
     out_dir: Path | None = None
     """Run directory (default runs/<family>/<scale>/<method>-seed<seed>); re-running resumes."""
@@ -227,6 +228,7 @@ class Run:
 
     family: str = "PointGoal"
     methods: tuple[str, ...] = ("bati", "bati-r", "recon")
+    """Any of bati, bati-r, recon, unicorn, csro, focal, dpt, oracle; or `all`."""
     seeds: tuple[int, ...] = (0,)
     scale: Literal["quick", "paper"] = "quick"
     steps: int | None = None

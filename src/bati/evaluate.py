@@ -43,32 +43,38 @@ class Evaluator:
         self.family = get_family(data.family)
         self.context_length = context_length
         self.infer = jax.jit(self._infer)
-        self.act = jax.jit(iql.act)
+        # The policy: IQL's actor on z, or the method itself (DPT).
+        self.act = jax.jit(method.act if method.acts_itself else iql.act)
         train, test = data.train_tasks, data.test_tasks
         self.distances = self.family.distance_matrix(test, train)  # (n_test, n_train)
 
-    def _infer(self, params, task_data, key):
+    def _infer(self, params, task_data, task_arrays, key):
         k_context, k_infer = jax.random.split(key)
         task_ids = jnp.arange(task_data.rewards.shape[0])
         contexts = sample_contexts(task_data, k_context, task_ids, self.context_length)
+        contexts["task_arrays"] = task_arrays  # the true tasks: only the Oracle reads them
         return self.method.infer(params, contexts, k_infer)
 
     def infer_latents(self, method_params, key) -> dict[str, np.ndarray]:
         keys = jax.random.split(key, len(SOURCES) + 1)
-        latents = {s: np.asarray(self.infer(method_params, getattr(self.data, s), k)) for s, k in zip(SOURCES, keys)}
+        test_arrays = jnp.asarray(self.data.test_task_arrays, jnp.float32)
+        latents = {s: np.asarray(self.infer(method_params, getattr(self.data, s), test_arrays, k))
+                   for s, k in zip(SOURCES, keys)}
         if hasattr(self.method, "task_latents"):  # methods with a latent per training task (BATI)
             latents["reference"] = np.asarray(self.method.task_latents(method_params))
         else:
-            latents["reference"] = np.asarray(self.infer(method_params, self.data.train, keys[-1]))
+            train_arrays = jnp.asarray(self.data.train_task_arrays, jnp.float32)
+            latents["reference"] = np.asarray(self.infer(method_params, self.data.train, train_arrays, keys[-1]))
         return latents
 
     def evaluate(self, state, key, seed: int) -> EvalResult:
         latents = self.infer_latents(state.method, key)
         returns, errors = {}, {}
+        policy_params = state.method if self.method.acts_itself else state.iql.actor
         for source in SOURCES:
             z = jnp.asarray(latents[source])
             episodes = rollout(self.family, self.data.test_tasks,
-                               lambda obs, _: self.act(state.iql.actor, jnp.asarray(obs, jnp.float32), z),
+                               lambda obs, _: self.act(policy_params, jnp.asarray(obs, jnp.float32), z),
                                noise=self.data.noise, seed=seed)
             returns[source] = episodes.returns
             errors[source] = self.inference_error(latents[source], latents["reference"])

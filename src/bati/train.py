@@ -23,8 +23,10 @@ import optax
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from bati.data import FamilyData, ensure_family_data, sample_batch, sample_contexts
+from bati.data.batch import TRANSITION_FIELDS
 from bati.errors import BatiError
 from bati.evaluate import Evaluator
+from bati.experts import load as load_expert
 from bati.io import append_jsonl, atomic_write_bytes, atomic_write_json, atomic_write_text, check_run_config
 from bati.methods import MethodSpec, make_method
 from bati.rl.iql import IQL, IQLConfig, IQLState
@@ -96,18 +98,23 @@ class TrainState(NamedTuple):
 class Trainer:
     """Builds the method, IQL and the jitted chunk of training steps for one config."""
 
-    def __init__(self, config: TrainConfig, data: FamilyData):
+    def __init__(self, config: TrainConfig, data: FamilyData, expert=None):
+        """`expert` labels actions for methods that imitate one (DPT); default: the family's shipped expert."""
         self.config = config
         self.data = data
         dims = NET_DIMS.get(config.family, (64, 64))
-        self.spec = MethodSpec(
+        family_spec = MethodSpec(
             obs_dim=data.obs_dim, action_dim=data.action_dim, task_dim=data.task_dim,
             n_train_tasks=len(data.train_tasks), latent_dim=LATENT_DIMS.get(config.family, 5),
-            encoder_dims=dims, decoder_dims=dims,
+            encoder_dims=dims, decoder_dims=dims, family=config.family,
         )
-        self.method = make_method(config.method, self.spec)
+        self.method = make_method(config.method, family_spec)
+        self.spec = self.method.spec  # a method may change the latent (Oracle: the task array; DPT: its width)
         self.iql = IQL(data.obs_dim, self.spec.latent_dim, data.action_dim, config.iql)
         self.optimizer = optax.adam(config.learning_rate)
+        self.train_task_arrays = jnp.asarray(data.train_task_arrays, jnp.float32)
+        if self.method.needs_expert_actions:
+            self.expert = expert or load_expert(config.family)
         self.run_chunk = jax.jit(self._run_chunk, static_argnames="length")
 
     def init(self, key: jax.Array) -> TrainState:
@@ -120,17 +127,28 @@ class Trainer:
         c = self.config
         k_batch, k_context, k_loss = jax.random.split(key, 3)
         batch = sample_batch(data, k_batch, c.task_batch, c.batch_size)
+        batch["task_arrays"] = self.train_task_arrays[batch["task_ids"]]
         if self.method.needs_context:
             batch["context"] = sample_contexts(data, k_context, batch["task_ids"], c.context_length)
+        if self.method.needs_positive_context:
+            batch["positive_context"] = sample_contexts(data, jax.random.fold_in(k_context, 1), batch["task_ids"],
+                                                        c.context_length)
+        if self.method.needs_expert_actions:
+            task_arrays = jnp.broadcast_to(batch["task_arrays"][:, None], batch["observations"].shape[:2] +
+                                           batch["task_arrays"].shape[-1:])
+            batch["expert_actions"] = self.expert.mean_action(batch["observations"], task_arrays)
         (rep_loss, (z, rep_metrics)), grads = jax.value_and_grad(self.method.loss, has_aux=True)(
             state.method, batch, k_loss
         )
         updates, method_opt = self.optimizer.update(grads, state.method_opt, state.method)
         method_params = optax.apply_updates(state.method, updates)
 
-        flat = {k: v.reshape((-1,) + v.shape[2:]) for k, v in batch.items() if k not in ("task_ids", "context")}
-        z_flat = jnp.repeat(jax.lax.stop_gradient(z), c.batch_size, axis=0)
-        iql_state, iql_metrics = self.iql.update(state.iql, flat, z_flat)
+        if self.method.acts_itself:  # e.g. DPT: no IQL policy to train
+            iql_state, iql_metrics = state.iql, {}
+        else:
+            flat = {k: batch[k].reshape((-1,) + batch[k].shape[2:]) for k in TRANSITION_FIELDS}
+            z_flat = jnp.repeat(jax.lax.stop_gradient(z), c.batch_size, axis=0)
+            iql_state, iql_metrics = self.iql.update(state.iql, flat, z_flat)
         metrics = {"representation_loss": rep_loss, **rep_metrics, **iql_metrics}
         return TrainState(method_params, method_opt, iql_state, state.step + 1), metrics
 

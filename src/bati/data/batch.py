@@ -25,7 +25,8 @@ import numpy as np
 from bati.data import store
 from bati.envs import EPISODE_LENGTH, get_family
 
-FIELDS = ("observations", "actions", "rewards", "next_observations", "collector")
+TRANSITION_FIELDS = ("observations", "actions", "rewards", "next_observations")
+FIELDS = TRANSITION_FIELDS + ("collector",)
 
 
 @flax.struct.dataclass

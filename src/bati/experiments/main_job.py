@@ -18,6 +18,7 @@ from bati.envs import get_family
 from bati.experts import load
 from bati.experts.card import expert_episodes
 from bati.io import atomic_write_json, atomic_write_text
+from bati.methods import METHODS
 from bati.report.curves import plot_learning_curves
 from bati.report.tables import results_markdown
 from bati.train import TrainConfig, train
@@ -42,15 +43,26 @@ def oracle_return(family_name: str, test_tasks, noise: float, seed: int = 0) -> 
     return float(expert_episodes(expert, test_tasks, test_tasks, noise, seed=2000 + seed).returns.mean())
 
 
+def resolve_methods(methods: tuple[str, ...]) -> list[str]:
+    """The methods to run, in order; `all` stands for every method. Unknown names are an error up front."""
+    names = list(METHODS) if "all" in methods else list(dict.fromkeys(methods))
+    unknown = [m for m in names if m not in METHODS]
+    if unknown or not names:
+        raise ValueError(f"unknown method(s) {', '.join(map(repr, unknown)) or '(none given)'}; "
+                         f"choose from: {', '.join(METHODS)}, or all")
+    return names
+
+
 def run_main_job(config: MainJobConfig, show_progress: bool = True) -> dict:
     start = time.perf_counter()
     family = get_family(config.family)
+    methods = resolve_methods(config.methods)
     out = config.out_dir or Path("runs") / config.family / config.scale
     data = ensure_family_data(config.family, config.scale, 0, config.noise, config.data_root, progress=show_progress)
     oracle = oracle_return(config.family, data.test_tasks, data.noise)
 
     rows, run_dirs = [], {}
-    for method in config.methods:
+    for method in methods:
         summaries = []
         for seed in config.seeds:
             run_dir = out / f"{method}-seed{seed}"

@@ -50,6 +50,10 @@ class ExpertPolicy:
         key = jax.random.PRNGKey(0) if key is None else key
         return np.asarray(self._sac.act(self.actor_params, obs, tasks, key, deterministic=deterministic))
 
+    def mean_action(self, obs: jax.Array, task_arrays: jax.Array) -> jax.Array:
+        """Deterministic actions as a jax function of arrays (usable inside a jitted training step)."""
+        return self._sac.act(self.actor_params, obs, task_arrays, jax.random.PRNGKey(0), deterministic=True)
+
     def act_from_arrays(self, obs: np.ndarray, task_arrays: np.ndarray, deterministic: bool, key) -> np.ndarray:
         """Batched actions when the task arrays are already built (the fast path for rollouts)."""
         return np.asarray(self._sac.act(self.actor_params, obs, task_arrays, key, deterministic=deterministic))

@@ -4,9 +4,15 @@ from __future__ import annotations
 
 from bati.methods.base import MethodSpec, TaskInference
 from bati.methods.bati import BATI, BATIReward
+from bati.methods.csro import CSRO
+from bati.methods.dpt import DPT
+from bati.methods.focal import FOCAL
+from bati.methods.oracle import Oracle
 from bati.methods.recon import Recon
+from bati.methods.unicorn import UNICORN
 
-METHODS = {"bati": BATI, "bati-r": BATIReward, "recon": Recon}
+METHODS = {"bati": BATI, "bati-r": BATIReward, "recon": Recon, "unicorn": UNICORN, "csro": CSRO,
+           "focal": FOCAL, "dpt": DPT, "oracle": Oracle}
 
 
 def make_method(name: str, spec: MethodSpec) -> TaskInference:

@@ -1,16 +1,23 @@
 """The interface every task-inference method implements.
 
 A method owns its parameters (a pytree) and three pure functions:
+- `init(key) -> params`;
 - `loss(params, batch, key) -> (loss, (z, metrics))`: the representation loss on a training
   batch, and the latent z (task_batch, latent_dim) that IQL receives (detached) for it;
 - `infer(params, context, key) -> z`: test time, from contexts alone (K, C, ...) -> (K, latent_dim).
 The training step (bati.train) differentiates `loss`, updates the method and IQL together.
+
+A training batch holds, per task of the batch (T tasks x B transitions): task_ids (T,),
+task_arrays (T, task_dim), observations, actions, rewards, next_observations (T, B, ...), and on
+request (the flags below) context (T, C, ...), positive_context (another context of the same
+tasks) and expert_actions (T, B, action_dim). Contexts given to `infer` also hold task_arrays
+(the true tasks; only the Oracle may read them).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any
 
 import jax
 
@@ -27,14 +34,30 @@ class MethodSpec:
     encoder_dims: tuple[int, ...]
     decoder_dims: tuple[int, ...]
     discrete_actions: bool = False
+    family: str = ""
+    """The task family's name, for per-family weights of Table 3 (empty: the reward families')."""
 
 
-class TaskInference(Protocol):
-    spec: MethodSpec
-    needs_context: bool  # does `loss` read batch["context"] (training contexts)?
+class TaskInference:
+    """Base class: the flags tell the training step what to put into the batch."""
 
-    def init(self, key: jax.Array) -> Any: ...
+    needs_context: bool = False
+    """`loss` reads batch["context"]: a context of each batch task, from its training data."""
+    needs_positive_context: bool = False
+    """`loss` also reads batch["positive_context"]: a second, independent context of each task."""
+    needs_expert_actions: bool = False
+    """`loss` reads batch["expert_actions"]: the true task's expert's action at each observation."""
+    acts_itself: bool = False
+    """The method is its own policy (`act(params, obs, z)`); IQL is not trained for it."""
 
-    def loss(self, params: Any, batch: dict, key: jax.Array) -> tuple[jax.Array, tuple[jax.Array, dict]]: ...
+    def __init__(self, spec: MethodSpec):
+        self.spec = spec
 
-    def infer(self, params: Any, context: dict, key: jax.Array) -> jax.Array: ...
+    def init(self, key: jax.Array) -> Any:
+        raise NotImplementedError
+
+    def loss(self, params: Any, batch: dict, key: jax.Array) -> tuple[jax.Array, tuple[jax.Array, dict]]:
+        raise NotImplementedError
+
+    def infer(self, params: Any, context: dict, key: jax.Array) -> jax.Array:
+        raise NotImplementedError

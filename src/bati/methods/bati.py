@@ -13,18 +13,17 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from bati.methods.base import MethodSpec
+from bati.methods.base import MethodSpec, TaskInference
 from bati.methods.dynamics import DynamicsModel, context_nll
 
 EMBEDDING_LOG_VAR = -4.0
 
 
-class BATI:
-    needs_context = False
+class BATI(TaskInference):
     reward_only_inference = False
 
     def __init__(self, spec: MethodSpec, num_latent_samples: int = 40):
-        self.spec = spec
+        super().__init__(spec)
         self.num_latent_samples = num_latent_samples
         self.model = DynamicsModel(spec.decoder_dims, 1 + spec.obs_dim)
         self.std = jnp.exp(0.5 * EMBEDDING_LOG_VAR)

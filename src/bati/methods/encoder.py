@@ -27,3 +27,9 @@ class ContextEncoder(nn.Module):
         )
         per_transition = MLP(self.hidden_dims, self.latent_dim)(x)
         return per_transition.mean(axis=-2) if pool else per_transition
+
+
+def dummy_context(spec) -> dict:
+    """A one-transition context with the spec's shapes (for initialising networks)."""
+    return {"observations": jnp.zeros((1, 1, spec.obs_dim)), "actions": jnp.zeros((1, 1, spec.action_dim)),
+            "rewards": jnp.zeros((1, 1)), "next_observations": jnp.zeros((1, 1, spec.obs_dim))}

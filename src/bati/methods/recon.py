@@ -10,26 +10,24 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from bati.methods.base import MethodSpec
+from bati.methods.base import MethodSpec, TaskInference
 from bati.methods.dynamics import DynamicsModel, context_nll
-from bati.methods.encoder import ContextEncoder
+from bati.methods.encoder import ContextEncoder, dummy_context
 
 
-class Recon:
+class Recon(TaskInference):
     needs_context = True
 
     def __init__(self, spec: MethodSpec):
-        self.spec = spec
+        super().__init__(spec)
         self.encoder = ContextEncoder(spec.encoder_dims, spec.latent_dim)
         self.model = DynamicsModel(spec.decoder_dims, 1 + spec.obs_dim)
 
     def init(self, key):
         k_enc, k_model = jax.random.split(key)
         s = self.spec
-        context = {"observations": jnp.zeros((1, 1, s.obs_dim)), "actions": jnp.zeros((1, 1, s.action_dim)),
-                   "rewards": jnp.zeros((1, 1)), "next_observations": jnp.zeros((1, 1, s.obs_dim))}
         dummy = (jnp.zeros((1, s.obs_dim)), jnp.zeros((1, s.action_dim)), jnp.zeros((1, s.latent_dim)))
-        return {"encoder": self.encoder.init(k_enc, context), "dynamics": self.model.init(k_model, *dummy)}
+        return {"encoder": self.encoder.init(k_enc, dummy_context(s)), "dynamics": self.model.init(k_model, *dummy)}
 
     def loss(self, params, batch, key):
         z = self.encoder.apply(params["encoder"], batch["context"])

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bati.report.tables import METHOD_LABELS
+
 
 def plot_learning_curves(run_dirs: dict[str, list[Path]], path: Path, title: str, oracle: float | None = None) -> None:
     """run_dirs: method -> its seeds' run directories (each with eval.jsonl)."""
@@ -23,7 +25,7 @@ def plot_learning_curves(run_dirs: dict[str, list[Path]], path: Path, title: str
             steps = [e["step"] for e in curves[0][:n]]
             values = np.array([[e[f"{source}_return"] for e in c[:n]] for c in curves])
             mean = values.mean(0)
-            (line,) = ax.plot(steps, mean, label=method)
+            (line,) = ax.plot(steps, mean, label=METHOD_LABELS.get(method, method))
             if len(dirs) > 1:
                 ax.fill_between(steps, mean - values.std(0), mean + values.std(0), color=line.get_color(), alpha=0.2)
         if oracle is not None:

@@ -1,0 +1,58 @@
+"""FOCAL (Li et al., 2021): a context encoder trained by distance metric learning.
+
+Latents of two contexts of the same task are pulled together (squared distance); latents of
+different tasks are pushed apart by an inverse-square term beta / (||z_i - z_j||^2 + eps). Each
+training batch holds two independent contexts of each of its 16 tasks (Table 3's task
+contrastive batch size), so every task has one positive pair and 2 x 2 x 15 negatives.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from bati.methods.base import MethodSpec, TaskInference
+from bati.methods.encoder import ContextEncoder, dummy_context
+
+PUSH_WEIGHT = 1.0  # beta
+PUSH_EPSILON = 0.1  # eps: bounds the push at 1 / eps when two latents coincide
+
+
+def metric_loss(z: jax.Array, labels: jax.Array, beta: float = PUSH_WEIGHT, eps: float = PUSH_EPSILON) -> jax.Array:
+    """FOCAL's distance metric loss over all pairs i < j of latents z (N, d) with task labels (N,).
+
+    Mean squared distance over same-task pairs plus mean inverse-square push over the other pairs.
+    """
+    sq_dist = jnp.sum((z[:, None, :] - z[None, :, :]) ** 2, axis=-1)
+    pairs = jnp.triu(jnp.ones_like(sq_dist, dtype=bool), k=1)
+    same = (labels[:, None] == labels[None, :]) & pairs
+    different = ~(labels[:, None] == labels[None, :]) & pairs
+    pull = jnp.sum(jnp.where(same, sq_dist, 0.0)) / jnp.maximum(same.sum(), 1)
+    push = jnp.sum(jnp.where(different, beta / (sq_dist + eps), 0.0)) / jnp.maximum(different.sum(), 1)
+    return pull + push
+
+
+class FOCAL(TaskInference):
+    needs_context = True
+    needs_positive_context = True
+
+    def __init__(self, spec: MethodSpec):
+        super().__init__(spec)
+        self.encoder = ContextEncoder(spec.encoder_dims, spec.latent_dim)
+
+    def init(self, key):
+        return {"encoder": self.encoder.init(key, dummy_context(self.spec))}
+
+    def contrastive_loss(self, params, batch):
+        """The metric loss on both contexts of every batch task; also returns the first context's z."""
+        z = self.encoder.apply(params["encoder"], batch["context"])
+        z_positive = self.encoder.apply(params["encoder"], batch["positive_context"])
+        labels = jnp.concatenate([batch["task_ids"], batch["task_ids"]])
+        return metric_loss(jnp.concatenate([z, z_positive]), labels), z
+
+    def loss(self, params, batch, key):
+        loss, z = self.contrastive_loss(params, batch)
+        return loss, (z, {"metric_loss": loss})
+
+    def infer(self, params, context, key):
+        return self.encoder.apply(params["encoder"], context)
