@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 from bati.cli import main
-from bati.io import git_commit
 from bati.data import collect as collect_mod
 from bati.data import store
 from bati.data.batch import TaskData, ensure_family_data, load_family_data, sample_batch, sample_contexts
 from bati.data.collect import collect, make_plan, n_minority
 from bati.envs import get_family
+from bati.io import git_commit
 
 FAMILY = "PointGoal"
 SMALL = {"n_episodes": 5, "n_context_episodes": 2}

@@ -109,7 +109,7 @@ def test_a_checkpoint_with_other_networks_is_refused(tmp_path, point_data):
 
 
 def test_likelihood_split_reports_errors_for_each_part_of_eq8(tmp_path, monkeypatch, point_data):
-    import bati.report.likelihood as likelihood
+    from bati.report import likelihood
 
     monkeypatch.setattr(likelihood, "load_family_data", lambda *a, **k: point_data)
     train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)

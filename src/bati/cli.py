@@ -109,7 +109,7 @@ class ExpertsCard:
 def group(**commands):
     """A dataclass type whose single field selects one of `commands` (nested subcommands)."""
     options = tuple(Annotated[cls, tyro.conf.subcommand(name)] for name, cls in commands.items())
-    return Annotated[Union[options], tyro.conf.arg(name="")]
+    return Annotated[Union[options], tyro.conf.arg(name="")]  # noqa: UP007 (Union of a built tuple)
 
 
 @dataclass

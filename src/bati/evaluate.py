@@ -74,7 +74,7 @@ class Evaluator:
         for source in SOURCES:
             z = jnp.asarray(latents[source])
             episodes = rollout(self.family, self.data.test_tasks,
-                               lambda obs, _: self.act(policy_params, jnp.asarray(obs, jnp.float32), z),
+                               lambda obs, _, z=z: self.act(policy_params, jnp.asarray(obs, jnp.float32), z),
                                noise=self.data.noise, seed=seed)
             returns[source] = episodes.returns
             errors[source] = self.inference_error(latents[source], latents["reference"])

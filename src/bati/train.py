@@ -68,7 +68,7 @@ class TrainConfig:
     learning_rate: float = 3e-4
     iql: IQLConfig = field(default_factory=IQLConfig)
 
-    def resolved(self) -> "TrainConfig":
+    def resolved(self) -> TrainConfig:
         quick = self.scale == "quick"
         steps = self.steps or (3_000 if quick else 100_000)
         eval_every = self.eval_every or max(steps // 10, self.log_every)

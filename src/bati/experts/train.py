@@ -54,7 +54,7 @@ class ExpertTrainConfig:
     """Where the finished actor is exported (default: the package zoo)."""
     sac: SACConfig = field(default_factory=SACConfig)
 
-    def resolved(self) -> "ExpertTrainConfig":
+    def resolved(self) -> ExpertTrainConfig:
         get_family(self.family)  # validate the name early
         total = self.total_steps or DEFAULT_STEPS[self.family]
         if total <= 0 or self.num_envs <= 0 or self.updates_per_step < 0:

@@ -11,8 +11,8 @@ weight lambda per family.
 
 from __future__ import annotations
 
-from functools import partial
 from collections.abc import Callable
+from functools import partial
 
 import jax
 import jax.numpy as jnp

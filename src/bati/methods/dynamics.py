@@ -6,7 +6,7 @@ s' - s (an equivalent parameterisation of s'); the loss is Eq. 7 summed over out
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import flax.linen as nn
 import jax
