@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from bati.methods.base import MethodSpec, TaskInference
-from bati.methods.dynamics import DynamicsModel, context_nll
+from bati.methods.dynamics import DynamicsModel, context_nll, init_dynamics
 
 EMBEDDING_LOG_VAR = -4.0
 
@@ -32,8 +32,7 @@ class BATI(TaskInference):
         k_table, k_model = jax.random.split(key)
         s = self.spec
         table = jax.random.normal(k_table, (s.n_train_tasks, s.latent_dim))  # N(0, I), like nn.Embedding
-        dummy = (jnp.zeros((1, s.obs_dim)), jnp.zeros((1, s.action_dim)), jnp.zeros((1, s.latent_dim)))
-        return {"table": table, "dynamics": self.model.init(k_model, *dummy)}
+        return {"table": table, "dynamics": init_dynamics(self.model, k_model, s)}
 
     def task_latents(self, params):
         """The table's means: the latent of each training task."""

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 
 from bati.methods.base import MethodSpec
-from bati.methods.focal import FOCAL, metric_loss
+from bati.methods.focal import FOCAL
 from bati.nets import GaussianHead, gaussian_log_prob
 
 CLUB_WEIGHTS = {"AntDir": 5.0, "HopperParam": 2.5, "WalkerParam": 2.5}
@@ -51,9 +51,7 @@ class CSRO(FOCAL):
         context = batch["context"]
         per_transition = self.encoder.apply(params["encoder"], context, pool=False)  # (T, C, d)
         z = per_transition.mean(axis=-2)
-        z_positive = self.encoder.apply(params["encoder"], batch["positive_context"])
-        labels = jnp.concatenate([batch["task_ids"], batch["task_ids"]])
-        metric = metric_loss(jnp.concatenate([z, z_positive]), labels)
+        metric = self.pair_loss(params, batch, z)
 
         latents = per_transition.reshape(-1, per_transition.shape[-1])
         # I(z; x) ignores a common shift of z; centring makes the estimate ignore it too. Without it,

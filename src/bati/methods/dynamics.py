@@ -53,6 +53,11 @@ class DynamicsModel(nn.Module):
         return (jnp.concatenate([reward_mean, state_mean], -1), jnp.concatenate([reward_log_var, state_log_var], -1))
 
 
+def init_dynamics(model: DynamicsModel, key: jax.Array, spec) -> dict:
+    """The model's parameters for the spec's observation, action and latent widths."""
+    return model.init(key, jnp.zeros((1, spec.obs_dim)), jnp.zeros((1, spec.action_dim)), jnp.zeros((1, spec.latent_dim)))
+
+
 def transition_targets(transitions: dict) -> jax.Array:
     """X^t as the model predicts it: concat(r, s' - s)."""
     delta = transitions["next_observations"] - transitions["observations"]

@@ -46,9 +46,13 @@ class FOCAL(TaskInference):
     def contrastive_loss(self, params, batch):
         """The metric loss on both contexts of every batch task; also returns the first context's z."""
         z = self.encoder.apply(params["encoder"], batch["context"])
+        return self.pair_loss(params, batch, z), z
+
+    def pair_loss(self, params, batch, z):
+        """The metric loss of the first contexts' latents z and the positive contexts' latents."""
         z_positive = self.encoder.apply(params["encoder"], batch["positive_context"])
         labels = jnp.concatenate([batch["task_ids"], batch["task_ids"]])
-        return metric_loss(jnp.concatenate([z, z_positive]), labels), z
+        return metric_loss(jnp.concatenate([z, z_positive]), labels)
 
     def loss(self, params, batch, key):
         loss, z = self.contrastive_loss(params, batch)

@@ -8,10 +8,9 @@ isolates BATI's inference procedure (Sec. 5.3).
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 
 from bati.methods.base import MethodSpec, TaskInference
-from bati.methods.dynamics import DynamicsModel, context_nll
+from bati.methods.dynamics import DynamicsModel, context_nll, init_dynamics
 from bati.methods.encoder import ContextEncoder, dummy_context
 
 
@@ -25,9 +24,8 @@ class Recon(TaskInference):
 
     def init(self, key):
         k_enc, k_model = jax.random.split(key)
-        s = self.spec
-        dummy = (jnp.zeros((1, s.obs_dim)), jnp.zeros((1, s.action_dim)), jnp.zeros((1, s.latent_dim)))
-        return {"encoder": self.encoder.init(k_enc, dummy_context(s)), "dynamics": self.model.init(k_model, *dummy)}
+        return {"encoder": self.encoder.init(k_enc, dummy_context(self.spec)),
+                "dynamics": init_dynamics(self.model, k_model, self.spec)}
 
     def loss(self, params, batch, key):
         z = self.encoder.apply(params["encoder"], batch["context"])

@@ -8,10 +8,9 @@ same dynamics model p(r, s' | s, a, z) as BATI's and Recon's.
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 
 from bati.methods.base import MethodSpec
-from bati.methods.dynamics import DynamicsModel, context_nll
+from bati.methods.dynamics import DynamicsModel, context_nll, init_dynamics
 from bati.methods.focal import FOCAL
 
 UNICORN_WEIGHTS = {"HopperParam": 1.5, "WalkerParam": 1.5}
@@ -26,9 +25,7 @@ class UNICORN(FOCAL):
 
     def init(self, key):
         k_enc, k_model = jax.random.split(key)
-        s = self.spec
-        dummy = (jnp.zeros((1, s.obs_dim)), jnp.zeros((1, s.action_dim)), jnp.zeros((1, s.latent_dim)))
-        return {**super().init(k_enc), "dynamics": self.model.init(k_model, *dummy)}
+        return {**super().init(k_enc), "dynamics": init_dynamics(self.model, k_model, self.spec)}
 
     def loss(self, params, batch, key):
         metric, z = self.contrastive_loss(params, batch)
