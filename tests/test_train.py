@@ -14,7 +14,7 @@ import bati.train as train_module
 from bati.envs import FAMILY_NAMES, get_family
 from bati.evaluate import Evaluator
 from bati.methods import METHODS
-from bati.train import TrainConfig, Trainer, TrainingError, train
+from bati.train import TrainConfig, Trainer, TrainingError, train, train_seeds
 
 TINY = dict(rl_hidden_dims=(32, 32), task_batch=4, batch_size=8, context_length=20, log_every=5)
 
@@ -34,7 +34,10 @@ def test_every_method_trains_and_evaluates_on_every_family(method, family, synth
         assert result.returns[source].shape == (len(data.test_tasks),)
         assert np.all(np.isfinite(result.returns[source]))
         assert result.latents[source].shape == (len(data.test_tasks), trainer.spec.latent_dim)
-        assert np.all(result.inference_errors[source] >= 0)
+        if trainer.method.infers_task:
+            assert np.all(result.inference_errors[source] >= 0)
+        else:  # no-context: no latent, no inference error
+            assert np.all(np.isnan(result.inference_errors[source]))
 
 
 @pytest.fixture
@@ -64,10 +67,26 @@ def _params(path, template):
     return flax.serialization.from_bytes(template, path.read_bytes())
 
 
-def test_resume_after_interruption_gives_the_same_parameters(tmp_path, point_data):
+def _killed_at_second_checkpoint(monkeypatch):
+    """Make the second checkpoint write die (as a kill would): the run stops after step 20's logs."""
+    real, calls = train_module.atomic_write_bytes, []
+
+    def write(path, data):
+        calls.append(path)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        real(path, data)
+
+    monkeypatch.setattr(train_module, "atomic_write_bytes", write)
+
+
+def test_resume_after_interruption_gives_the_same_parameters(tmp_path, point_data, monkeypatch):
     train(_config(tmp_path, "straight"), show_progress=False)
-    train(_config(tmp_path, "resumed", steps=10), show_progress=False)  # "killed" after step 10
-    train(_config(tmp_path, "resumed"), show_progress=False)  # resumes from its checkpoint
+    with monkeypatch.context() as patch:
+        _killed_at_second_checkpoint(patch)
+        with pytest.raises(KeyboardInterrupt):
+            train(_config(tmp_path, "resumed"), show_progress=False)  # killed before its step-20 checkpoint
+    train(_config(tmp_path, "resumed"), show_progress=False)  # resumes from its step-10 checkpoint
     template = Trainer(_config(tmp_path, "x").resolved(), point_data).init(jax.random.PRNGKey(0))
     straight = _params(tmp_path / "straight" / "checkpoint.msgpack", template)
     resumed = _params(tmp_path / "resumed" / "checkpoint.msgpack", template)
@@ -84,8 +103,10 @@ def test_same_config_and_seed_reproduce_the_same_numbers(tmp_path, point_data):
 
 
 def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(tmp_path, monkeypatch, point_data):
-    config = _config(tmp_path, "nan", steps=10)
-    train(config, show_progress=False)
+    with monkeypatch.context() as patch:
+        _killed_at_second_checkpoint(patch)
+        with pytest.raises(KeyboardInterrupt):
+            train(_config(tmp_path, "nan", steps=20), show_progress=False)  # stops with a step-10 checkpoint
     before = (tmp_path / "nan" / "checkpoint.msgpack").read_bytes()
     poisoned = point_data.train.replace(rewards=jnp.full_like(point_data.train.rewards, jnp.nan))
     monkeypatch.setattr(train_module, "ensure_family_data", lambda *a, **k: type(point_data)(
@@ -101,11 +122,20 @@ def test_a_run_directory_of_another_family_or_method_is_refused(tmp_path, point_
         train(_config(tmp_path, "run", steps=5, eval_every=5, method="recon"), show_progress=False)
 
 
-def test_a_checkpoint_with_other_networks_is_refused(tmp_path, point_data):
+def test_a_rerun_with_any_other_setting_is_refused_and_names_it(tmp_path, point_data):
     train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
-    config = _config(tmp_path, "run", steps=10, eval_every=5, rl_hidden_dims=(16, 16))
+    with pytest.raises(ValueError, match="steps: 5 there, 10 now"):
+        train(_config(tmp_path, "run", steps=10, eval_every=5), show_progress=False)
+    with pytest.raises(ValueError, match="eval_context_length: 20 there, 30 now"):
+        train(_config(tmp_path, "run", steps=5, eval_every=5, eval_context_length=30), show_progress=False)
+
+
+def test_a_checkpoint_with_other_networks_is_refused(tmp_path, point_data):
+    train(_config(tmp_path, "small", steps=5, eval_every=5, rl_hidden_dims=(16, 16)), show_progress=False)
+    train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
+    (tmp_path / "run" / "checkpoint.msgpack").write_bytes((tmp_path / "small" / "checkpoint.msgpack").read_bytes())
     with pytest.raises(ValueError, match="does not match this run's networks"):
-        train(config, show_progress=False)
+        train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
 
 
 def test_likelihood_split_reports_errors_for_each_part_of_eq8(tmp_path, monkeypatch, point_data):
@@ -163,3 +193,54 @@ def test_oracle_infers_the_true_task_whatever_the_context(synthetic_data):
         # nearest training task to the true one: the smallest distance there is
         distances = get_family(data.family).distance_matrix(data.test_tasks, data.train_tasks)
         np.testing.assert_allclose(result.inference_errors[source], distances.min(axis=1))
+
+
+def test_seeds_in_one_program_equal_the_runs_trained_alone(tmp_path, point_data):
+    together = train_seeds(_config(tmp_path, "unused"), (0, 1, 2), show_progress=False, runs_dir=tmp_path / "vmapped")
+    alone = train(_config(tmp_path, "alone", seed=1), show_progress=False)
+    template = Trainer(_config(tmp_path, "x").resolved(), point_data).init(jax.random.PRNGKey(0))
+    vmapped = _params(tmp_path / "vmapped" / "bati-seed1" / "checkpoint.msgpack", template)
+    single = _params(tmp_path / "alone" / "checkpoint.msgpack", template)
+    jax.tree_util.tree_map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5), vmapped, single)
+    assert together[1]["seed"] == 1 and together[1]["steps"] == 20
+    np.testing.assert_allclose(together[1]["p_test_return"], alone["p_test_return"], rtol=1e-3, atol=1e-2)
+    for seed in (0, 1, 2):  # every seed has a complete run directory of its own
+        out = tmp_path / "vmapped" / f"bati-seed{seed}"
+        assert [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()] == [5, 10, 15, 20]
+        assert json.loads((out / "config.json").read_text())["seed"] == seed
+    assert together[0]["p_test_task_returns"] != together[2]["p_test_task_returns"]
+
+
+def test_seeds_resumed_from_different_steps_are_brought_level(tmp_path, point_data, monkeypatch):
+    runs = tmp_path / "runs"
+    train(_config(runs, "bati-seed1", seed=1), show_progress=False)
+    with monkeypatch.context() as patch:
+        _killed_at_second_checkpoint(patch)  # seed 0 stops with a step-10 checkpoint
+        with pytest.raises(KeyboardInterrupt):
+            train(_config(runs, "bati-seed0", seed=0), show_progress=False)
+    summaries = train_seeds(_config(tmp_path, "unused"), (0, 1), show_progress=False, runs_dir=runs)
+    assert [s["steps"] for s in summaries] == [20, 20]
+    for seed in (0, 1):
+        steps = [json.loads(line)["step"] for line in (runs / f"bati-seed{seed}" / "eval.jsonl").read_text().splitlines()]
+        assert steps == [10, 20]
+
+
+def test_run_results_record_the_device_and_references(tmp_path, point_data):
+    summary = train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
+    assert summary["device"].startswith(jax.devices()[0].platform)
+    assert summary["config"]["steps"] == 5 and summary["config"]["method"] == "bati"
+    references = summary["reference_returns"]
+    assert references["expert"] > references["random"]  # the PointGoal expert reaches its goals
+    assert "device" in json.loads((tmp_path / "run" / "config.json").read_text())["runtime"]
+
+
+def test_no_context_trains_iql_without_a_latent(tmp_path, point_data):
+    summary = train(_config(tmp_path, "none", steps=5, eval_every=5, method="no-context"), show_progress=False)
+    assert np.isfinite(summary["p_test_return"]) and np.isnan(summary["p_test_inference_error"])
+
+
+@pytest.mark.parametrize("seeds", [(), (1, 1), (-1,)])
+def test_bad_seed_lists_are_refused_before_any_work(tmp_path, seeds):
+    with pytest.raises(ValueError, match="seeds must be distinct"):
+        train_seeds(_config(tmp_path, "x"), seeds, show_progress=False, runs_dir=tmp_path / "r")
+    assert not (tmp_path / "r").exists()

@@ -14,6 +14,8 @@ from rich.markdown import Markdown
 from rich.markup import escape
 from rich.table import Table
 
+from bati.experiments.sweep import Grid
+
 console = Console()
 # Errors go to stderr on one line, whatever the terminal width (soft_wrap: no hard line breaks).
 error_console = Console(stderr=True, soft_wrap=True)
@@ -21,6 +23,10 @@ error_console = Console(stderr=True, soft_wrap=True)
 
 class UserError(Exception):
     """An error caused by the user's input: printed without a traceback, exit code 2."""
+
+
+class SweepFailed(Exception):
+    """Some cells of a sweep failed (the others finished): exit code 1."""
 
 
 @dataclass
@@ -137,12 +143,14 @@ class DataCollect:
     """Datasets root: the collection goes to <root>/<family>/<scale>-seed<seed>-eps<eps>/."""
     zoo_dir: Path | None = None
     """Where the family's expert is loaded from (default: the package zoo)."""
+    workers: int | None = None
+    """Worker processes (default: all cores)"""
 
     def run(self) -> None:
         from bati.data.collect import collect
 
         result = collect(self.family, self.scale, self.seed, self.noise, self.root, zoo_dir=self.zoo_dir,
-                         progress=console.is_terminal)
+                         progress=console.is_terminal, workers=self.workers)
         m = result.manifest
         how = "already collected" if result.cached else f"collected in {result.wall_time_s:.1f} s"
         console.print(
@@ -199,27 +207,32 @@ class Train:
 
     family: str = "PointGoal"
     method: str = "bati"
-    """bati, bati-r, recon, unicorn, csro, focal, dpt or oracle."""
+    """bati, bati-r, recon, unicorn, csro, focal, dpt, oracle or no-context."""
     seed: int = 0
     scale: Literal["quick", "paper"] = "quick"
     steps: int | None = None
     """Gradient steps (default: quick 3k, paper 100k)."""
     noise: float | None = None
     out_dir: Path | None = None
-    """Run directory (default runs/<family>/<scale>/<method>-seed<seed>); re-running resumes."""
+    """Run directory (default runs/<family>/<scale>/<method>-seed<seed>); re-running resumes. With --seeds:
+    the parent of the runs' directories <method>-seed<s> (default runs/<family>/<scale>)."""
     data_root: Path = Path("data")
+    seeds: tuple[int, ...] = ()
+    """Train several seeds as one program vmapped over them (instead of --seed)."""
 
     def run(self) -> None:
-        from bati.train import TrainConfig, train
+        from bati.train import TrainConfig, train_seeds
 
-        summary = train(TrainConfig(family=self.family, method=self.method, seed=self.seed, scale=self.scale,
-                                    steps=self.steps, noise=self.noise, out_dir=self.out_dir,
-                                    data_root=self.data_root))
-        console.print(
-            f"{self.method} on {self.family}: return with p_train contexts {summary['p_train_return']:.1f}, "
-            f"with p_test contexts {summary['p_test_return']:.1f} (mean of the last "
-            f"{summary['evaluations_averaged']} evaluations)"
-        )
+        config = TrainConfig(family=self.family, method=self.method, seed=self.seed, scale=self.scale,
+                             steps=self.steps, noise=self.noise, out_dir=None if self.seeds else self.out_dir,
+                             data_root=self.data_root)
+        runs_dir = (self.out_dir or Path("runs") / self.family / self.scale) if self.seeds else None
+        for summary in train_seeds(config, self.seeds or (self.seed,), runs_dir=runs_dir):
+            console.print(
+                f"{self.method} on {self.family}, seed {summary['seed']}: return with p_train contexts "
+                f"{summary['p_train_return']:.1f}, with p_test contexts {summary['p_test_return']:.1f} "
+                f"(mean of the last {summary['evaluations_averaged']} evaluations)"
+            )
 
 
 @dataclass
@@ -260,7 +273,72 @@ class Likelihood:
         console.print(Markdown(likelihood_split_markdown(likelihood_split(self.run_dir, self.context_length))))
 
 
-COMMANDS = {"envs": Envs, "experts": Experts, "data": Data, "train": Train, "run": Run, "likelihood": Likelihood}
+@dataclass
+class Sweep:
+    """Run a grid of training runs (families x methods x seeds x noises x scales); reruns do only what is missing."""
+
+    grid: Annotated[Grid, tyro.conf.OmitArgPrefixes]
+    out_dir: Path = Path("runs/sweep")
+    """Sweep directory: sweep.json (cells and status) and one run directory per cell."""
+    data_root: Path = Path("data")
+    workers: int = 1
+    """Jobs at a time (local: processes; several may share one GPU). A job trains one setting's seeds together."""
+    backend: Literal["local", "ray"] = "local"
+    address: str | None = None
+    """Ray cluster address (backend ray; default: a local Ray)."""
+    report: bool = True
+    """Finish with `bati report OUT_DIR`."""
+
+    def run(self) -> None:
+        from bati.experiments.sweep import sweep
+
+        result = sweep(self.grid, self.out_dir, data_root=self.data_root, workers=self.workers, backend=self.backend,
+                       address=self.address, show_progress=console.is_terminal)
+        counts = {s: result.count(s) for s in ("done", "skipped", "failed")}
+        console.print(f"sweep {result.out_dir}: {counts['done']} cell(s) run, {counts['skipped']} already done, "
+                      f"{counts['failed']} failed, in {result.wall_time_s / 60:.1f} min", soft_wrap=True)
+        for cell_id, error in result.errors.items():
+            error_console.print(f"[red]failed[/] {cell_id}: {escape(error)}", soft_wrap=True)
+        if self.report and counts["done"] + counts["skipped"]:
+            Report(self.out_dir).run()
+        if counts["failed"]:
+            raise SweepFailed(f"{counts['failed']} cell(s) failed; their errors are in {result.out_dir}/sweep.json; "
+                              "rerun the same command to retry them")
+
+
+@dataclass
+class Report:
+    """Tables (Markdown + CSV) and learning curves (PNG) from the eval.json files under a directory."""
+
+    results_dir: tyro.conf.Positional[Path]
+    """Directory searched recursively for runs' eval.json files."""
+    out_dir: Path | None = None
+    """Where report.md, the CSVs and PNGs go (default: RESULTS_DIR/report)."""
+
+    def run(self) -> None:
+        import warnings
+
+        from bati.report import ReportWarning, build_report
+
+        caught: list[warnings.WarningMessage] = []
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", ReportWarning)
+                report = build_report(self.results_dir, self.out_dir)
+        finally:  # skipped files are named even when the report then fails
+            for w in caught:
+                if issubclass(w.category, ReportWarning):
+                    error_console.print(f"[yellow]warning:[/] {escape(str(w.message))}")
+                else:
+                    warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+        console.print(Markdown(report["markdown"]))
+        console.print(f"{report['runs']} run(s), {len(report['tables'])} table(s); "
+                      f"files in {report['out_dir']}/: " + ", ".join(p.name for p in report["files"]),
+                      soft_wrap=True)
+
+
+COMMANDS = {"envs": Envs, "experts": Experts, "data": Data, "train": Train, "run": Run, "sweep": Sweep,
+            "likelihood": Likelihood, "report": Report}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -272,6 +350,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         command.run()
+    except SweepFailed as err:
+        error_console.print(f"[bold red]error:[/] {escape(str(err))}")
+        return 1
     except (UserError, BatiError, TaskError, FileNotFoundError, ValueError) as err:
         error_console.print(f"[bold red]error:[/] {escape(str(err))}")
         return 2

@@ -43,8 +43,10 @@ class Evaluator:
         self.family = get_family(data.family)
         self.context_length = context_length
         self.infer = jax.jit(self._infer)
-        # The policy: IQL's actor on z, or the method itself (DPT).
-        self.act = jax.jit(method.act if method.acts_itself else iql.act)
+        # The policy: IQL's actor on z, or the method itself (DPT); vmapped over runs (seeds).
+        act = method.act if method.acts_itself else iql.act
+        self.act = jax.jit(jax.vmap(act))
+        self.latents_of_runs = jax.jit(jax.vmap(self.infer_latents))
         train, test = data.train_tasks, data.test_tasks
         self.distances = self.family.distance_matrix(test, train)  # (n_test, n_train)
 
@@ -55,31 +57,74 @@ class Evaluator:
         contexts["task_arrays"] = task_arrays  # the true tasks: only the Oracle reads them
         return self.method.infer(params, contexts, k_infer)
 
-    def infer_latents(self, method_params, key) -> dict[str, np.ndarray]:
+    def infer_latents(self, method_params, key) -> dict[str, jax.Array]:
+        """The latent inferred from a p_test and a p_train context of each test task, and the reference
+        latent of each training task (its table entry, or inferred from its own training data)."""
         keys = jax.random.split(key, len(SOURCES) + 1)
         test_arrays = jnp.asarray(self.data.test_task_arrays, jnp.float32)
-        latents = {s: np.asarray(self.infer(method_params, getattr(self.data, s), test_arrays, k))
+        latents = {s: self._infer(method_params, getattr(self.data, s), test_arrays, k)
                    for s, k in zip(SOURCES, keys)}
         if hasattr(self.method, "task_latents"):  # methods with a latent per training task (BATI)
-            latents["reference"] = np.asarray(self.method.task_latents(method_params))
+            latents["reference"] = self.method.task_latents(method_params)
         else:
             train_arrays = jnp.asarray(self.data.train_task_arrays, jnp.float32)
-            latents["reference"] = np.asarray(self.infer(method_params, self.data.train, train_arrays, keys[-1]))
+            latents["reference"] = self._infer(method_params, self.data.train, train_arrays, keys[-1])
         return latents
 
     def evaluate(self, state, key, seed: int) -> EvalResult:
-        latents = self.infer_latents(state.method, key)
-        returns, errors = {}, {}
-        policy_params = state.method if self.method.acts_itself else state.iql.actor
+        """Evaluate one run's state (env i of the rollout is reset with seed + i)."""
+        stacked = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], state)
+        return self.evaluate_runs(stacked, key[None], [seed])[0]
+
+    def evaluate_runs(self, states, keys: jax.Array, seeds: list[int]) -> list[EvalResult]:
+        """Evaluate k runs at once: `states` and `keys` stacked on a leading axis of size k (seeds).
+
+        Each source's episodes of all k runs step in one lockstep rollout of k x n_test envs with one
+        batched (vmapped) policy call per step; run j's env i is reset with seeds[j] + i, as `evaluate`.
+        """
+        k, n = len(seeds), len(self.data.test_tasks)
+        latents = jax.device_get(self.latents_of_runs(states.method, keys))
+        policy_params = states.method if self.method.acts_itself else states.iql.actor
+        returns = {}
         for source in SOURCES:
-            z = jnp.asarray(latents[source])
-            episodes = rollout(self.family, self.data.test_tasks,
-                               lambda obs, _, z=z: self.act(policy_params, jnp.asarray(obs, jnp.float32), z),
-                               noise=self.data.noise, seed=seed)
-            returns[source] = episodes.returns
-            errors[source] = self.inference_error(latents[source], latents["reference"])
-        return EvalResult(returns, errors, latents)
+            z = jnp.asarray(latents[source])  # (k, n, latent_dim)
+
+            def act(obs, _, z=z):
+                obs = jnp.asarray(obs, jnp.float32).reshape(k, n, -1)
+                return np.asarray(self.act(policy_params, obs, z)).reshape(k * n, -1)
+
+            episodes = rollout(self.family, list(self.data.test_tasks) * k, act, noise=self.data.noise,
+                               seed=[s + i for s in seeds for i in range(n)])
+            returns[source] = episodes.returns.reshape(k, n)
+        results = []
+        for j in range(k):
+            run_latents = {name: np.asarray(value[j]) for name, value in latents.items()}
+            errors = {s: self.inference_error(run_latents[s], run_latents["reference"]) for s in SOURCES}
+            results.append(EvalResult({s: returns[s][j] for s in SOURCES}, errors, run_latents))
+        return results
 
     def inference_error(self, z: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """App. C.2 distance from each true test task to the training task nearest to its latent
+        (NaN for a method whose latent is empty, e.g. `no-context`)."""
+        if z.shape[-1] == 0:
+            return np.full(len(z), np.nan)
         nearest = np.argmin(((z[:, None, :] - reference[None, :, :]) ** 2).sum(-1), axis=1)
         return self.distances[np.arange(len(z)), nearest]
+
+
+def reference_returns(data: FamilyData, seed: int = 0) -> dict[str, float]:
+    """Mean return on the test tasks of a uniform random policy (0 on a normalised scale) and of the
+    data-collecting experts, each acting for its own task (1; the paper's "Oracle (Pre-IQL)")."""
+    from bati.experts import load
+    from bati.experts.card import expert_episodes
+
+    family = get_family(data.family)
+    rng = np.random.default_rng(seed)
+    probe = family.make_env(data.test_tasks[0], data.noise)
+    low, high = probe.action_space.low, probe.action_space.high
+    probe.close()
+    random_episodes = rollout(family, data.test_tasks, lambda obs, _: rng.uniform(low, high, (len(obs), len(low))),
+                              noise=data.noise, seed=3000 + seed)
+    expert = load(data.family)
+    experts = expert_episodes(expert, data.test_tasks, data.test_tasks, data.noise, seed=2000 + seed)
+    return {"random": float(random_episodes.returns.mean()), "expert": float(experts.returns.mean())}

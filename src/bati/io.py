@@ -77,7 +77,12 @@ def git_commit() -> str:
 def check_run_config(path: Path, config: dict, identity: tuple[str, ...]) -> None:
     """Write a run's config.json, or refuse to reuse a directory whose run differs in `identity` keys."""
     if path.exists():
-        saved = json.loads(path.read_text())
+        try:
+            saved = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise ValueError(f"{path} is not valid JSON ({err}); delete the run directory or use another one") from err
+        if not isinstance(saved, dict):
+            raise ValueError(f"{path} holds a {type(saved).__name__}, not a run's config; delete it or use another one")
         diffs = [k for k in identity if saved.get(k) != config.get(k)]
         if diffs:
             detail = ", ".join(f"{k}: {saved.get(k)!r} there, {config.get(k)!r} now" for k in diffs)

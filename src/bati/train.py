@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import platform
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -25,9 +27,16 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from bati.data import FamilyData, ensure_family_data, sample_batch, sample_contexts
 from bati.data.batch import TRANSITION_FIELDS
 from bati.errors import BatiError
-from bati.evaluate import Evaluator
+from bati.evaluate import Evaluator, reference_returns
 from bati.experts import load as load_expert
-from bati.io import append_jsonl, atomic_write_bytes, atomic_write_json, atomic_write_text, check_run_config
+from bati.io import (
+    append_jsonl,
+    atomic_write_bytes,
+    atomic_write_json,
+    atomic_write_text,
+    check_run_config,
+    git_commit,
+)
 from bati.methods import MethodSpec, make_method
 from bati.rl.iql import IQL, IQLConfig, IQLState
 
@@ -52,9 +61,10 @@ class TrainConfig:
     batch_size: int | None = None
     """Transitions per task in a batch (default: paper 256, quick 64)."""
     context_length: int = 200
-    """Transitions in a context (training contexts of encoder methods and evaluation contexts)."""
+    """Transitions in a training context (encoder methods) and, by default, in an evaluation context."""
+    eval_context_length: int | None = None
+    """Transitions in an evaluation context (default: context_length; Table 1 evaluates other lengths)."""
     eval_every: int | None = None
-    eval_seeds: int = 1
     checkpoint_every: int | None = None
     log_every: int = 100
     noise: float | None = None
@@ -68,23 +78,55 @@ class TrainConfig:
     learning_rate: float = 3e-4
     iql: IQLConfig = field(default_factory=IQLConfig)
 
+    episodes_per_task: int | None = None
+    """Episodes per training task in the data (default: the scale's; a collection of other sizes needs
+    its own --data-root)."""
+    context_episodes: int | None = None
+    """Episodes per test task in the context data (default: the scale's)."""
+
     def resolved(self) -> TrainConfig:
+        """Every default filled in (an explicit default and None give the same config) and every value
+        checked, before any work: ValueError / TaskError with one line naming the setting."""
+        from bati.envs import get_family
+        from bati.methods import METHODS
+
+        family = get_family(self.family)  # TaskError for an unknown family
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; choose one of: {', '.join(METHODS)}")
+        if self.scale not in ("quick", "paper"):
+            raise ValueError(f"unknown scale {self.scale!r}; choose quick or paper")
+        for name in ("steps", "task_batch", "batch_size", "context_length", "eval_context_length", "eval_every",
+                     "checkpoint_every", "log_every", "episodes_per_task", "context_episodes"):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        for name in ("seed", "data_seed"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
+                raise ValueError(f"{name} must be an integer >= 0, got {getattr(self, name)!r}")
+        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
+            raise ValueError(f"learning_rate must be a finite number > 0, got {self.learning_rate!r}")
         quick = self.scale == "quick"
-        steps = self.steps or (3_000 if quick else 100_000)
-        eval_every = self.eval_every or max(steps // 10, self.log_every)
-        out = self.out_dir or Path("runs") / self.family / self.scale / f"{self.method}-seed{self.seed}"
+        pick = lambda value, default: default if value is None else value  # noqa: E731
+        steps = pick(self.steps, 3_000 if quick else 100_000)
+        tenth = max(self.log_every, (steps // 10) // self.log_every * self.log_every)
+        eval_every = pick(self.eval_every, tenth)
+        out = pick(self.out_dir, Path("runs") / self.family / self.scale / f"{self.method}-seed{self.seed}")
         resolved = replace(
             self,
+            noise=family.validate_noise(self.noise),
             steps=steps,
-            batch_size=self.batch_size or (64 if quick else 256),
+            batch_size=pick(self.batch_size, 64 if quick else 256),
             eval_every=eval_every,
-            checkpoint_every=self.checkpoint_every or eval_every,
-            out_dir=out,
-            rl_hidden_dims=self.rl_hidden_dims or ((128, 128) if quick else (256, 256)),
+            eval_context_length=pick(self.eval_context_length, self.context_length),
+            checkpoint_every=pick(self.checkpoint_every, eval_every),
+            out_dir=Path(out),
+            data_root=Path(self.data_root),
+            rl_hidden_dims=tuple(pick(self.rl_hidden_dims, (128, 128) if quick else (256, 256))),
         )
         resolved.iql = replace(self.iql, hidden_dims=resolved.rl_hidden_dims, learning_rate=self.learning_rate)
         if resolved.eval_every % self.log_every or resolved.checkpoint_every % self.log_every:
-            raise ValueError(f"eval_every and checkpoint_every must be multiples of log_every={self.log_every}")
+            raise ValueError(f"eval_every ({resolved.eval_every}) and checkpoint_every ({resolved.checkpoint_every}) "
+                             f"must be multiples of log_every ({self.log_every})")
         return resolved
 
 
@@ -116,6 +158,8 @@ class Trainer:
         if self.method.needs_expert_actions:
             self.expert = expert or load_expert(config.family)
         self.run_chunk = jax.jit(self._run_chunk, static_argnames="length")
+        # k seeds in one program: states and keys stacked on a leading axis, the data shared.
+        self.run_chunks = jax.jit(self._run_chunks, static_argnames="length")
 
     def init(self, key: jax.Array) -> TrainState:
         k_method, k_iql = jax.random.split(key)
@@ -161,54 +205,144 @@ class Trainer:
         state, metrics = jax.lax.scan(body, state, None, length=length)
         return state, jax.tree_util.tree_map(jnp.mean, metrics)
 
+    def _run_chunks(self, states: TrainState, base_keys: jax.Array, data, length: int):
+        """`_run_chunk` for k runs (seeds) at once: states and keys stacked on axis 0, data shared."""
+        return jax.vmap(lambda state, key: self._run_chunk(state, key, data, length))(states, base_keys)
+
 
 def train(config: TrainConfig, show_progress: bool = True) -> dict:
     """Train (or resume) one run; returns its final evaluation summary (also in eval.json)."""
-    config = config.resolved()
-    out: Path = config.out_dir
+    return train_seeds(config, (config.seed,), show_progress=show_progress)[0]
+
+
+def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool = True,
+                runs_dir: Path | None = None) -> list[dict]:
+    """Train (or resume) one run per seed of one config as one compiled program vmapped over seeds.
+
+    Each seed has its own run directory (`runs_dir/<method>-seed<s>`, default: the config's default
+    directory), metrics, evaluations and checkpoints, exactly as a run trained alone; seed s gives the
+    numbers of the single-seed run s to float tolerance. Runs resumed from checkpoints of different
+    steps are first brought level (the ones behind advance alone), then go on together.
+    Returns the runs' summaries (also in each eval.json), in the order of `seeds`.
+    """
+    seeds = check_seeds(seeds)
+    if len(seeds) > 1 and config.out_dir is not None and runs_dir is None:
+        raise ValueError("several seeds need one directory each: give runs_dir (the parent), not out_dir")
+    configs = [replace(config, seed=s, out_dir=(runs_dir / f"{config.method}-seed{s}") if runs_dir else
+                       config.out_dir).resolved() for s in seeds]
+    config = configs[0]
+    for c in configs:  # claim the run directories (or refuse them) before any work
+        _check_run_dir(c.out_dir, c)
     data = ensure_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
+                              n_episodes=config.episodes_per_task, n_context_episodes=config.context_episodes,
                               progress=show_progress)
     trainer = Trainer(config, data)
-    evaluator = Evaluator(trainer.method, trainer.iql, data, config.context_length)
-    _check_run_dir(out, config)
-    base_key = jax.random.PRNGKey(config.seed)
-    state = trainer.init(jax.random.fold_in(base_key, 0))
-    if (out / "checkpoint.msgpack").exists():
-        state = _load_checkpoint(out / "checkpoint.msgpack", state)
-        _drop_records_after(out, int(state.step))
-    train_key = jax.random.fold_in(base_key, 1)
-    device_data = data.train
-
+    evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length)
+    runs = [_SeedRun.open(c, trainer) for c in configs]
+    start = time.perf_counter()
     progress = Progress(
-        TextColumn(f"[bold]{config.method} on {config.family}"), BarColumn(),
-        TextColumn("{task.completed:,}/{task.total:,}"), TextColumn("{task.fields[status]}"),
+        TextColumn(f"[bold]{config.method} on {config.family}" + (f" x{len(seeds)} seeds" if len(seeds) > 1 else "")),
+        BarColumn(), TextColumn("{task.completed:,}/{task.total:,}"), TextColumn("{task.fields[status]}"),
         TimeElapsedColumn(), TimeRemainingColumn(), disable=not show_progress,
     )
-    step = int(state.step)
-    start = time.perf_counter()
     with progress:
-        bar = progress.add_task("train", total=config.steps, completed=step, status="")
-        while step < config.steps:
-            length = min(config.log_every, config.steps - step)
-            state, metrics = trainer.run_chunk(state, train_key, device_data, length=length)
-            step += length
-            metrics = {k: float(v) for k, v in metrics.items()}
-            bad = [k for k, v in metrics.items() if not math.isfinite(v)]
+        bar = progress.add_task("train", total=config.steps, completed=min(r.step for r in runs), status="")
+        while (behind := min(r.step for r in runs)) < config.steps:
+            group = [r for r in runs if r.step == behind]
+            until = min([r.step for r in runs if r.step > behind] + [config.steps])
+            _advance(trainer, evaluator, data, group, until, start, progress, bar)
+    references = reference_returns(data)
+    session = {"device": describe_device(), "jax_version": jax.__version__, "commit": git_commit(),
+               "wall_time_s": round(time.perf_counter() - start, 2)}
+    summaries = []
+    for run in runs:
+        summary = {**summarize_run(run.out), "reference_returns": references, **session,
+                   "data": {k: data.manifest.get(k) for k in ("n_episodes", "n_context_episodes", "transitions")}}
+        atomic_write_json(run.out / "eval.json", summary)
+        summaries.append(summary)
+    return summaries
+
+
+def check_seeds(seeds) -> tuple[int, ...]:
+    """The seeds as a tuple, or ValueError unless they are distinct integers >= 0, at least one."""
+    seeds = tuple(seeds)
+    if not seeds or len(set(seeds)) != len(seeds) or any(not isinstance(s, int) or s < 0 for s in seeds):
+        raise ValueError(f"seeds must be distinct integers >= 0 (at least one), got {list(seeds)}")
+    return seeds
+
+
+@dataclass
+class _SeedRun:
+    """One seed's run directory and its state on the host side of the training loop."""
+
+    config: TrainConfig
+    state: TrainState
+    base_key: jax.Array
+
+    @property
+    def out(self) -> Path:
+        return self.config.out_dir
+
+    @property
+    def step(self) -> int:
+        return int(self.state.step)
+
+    @classmethod
+    def open(cls, config: TrainConfig, trainer: Trainer) -> _SeedRun:
+        """Start fresh or resume from the run directory's checkpoint (the directory is already claimed)."""
+        base_key = jax.random.PRNGKey(config.seed)
+        state = trainer.init(jax.random.fold_in(base_key, 0))
+        if (config.out_dir / "checkpoint.msgpack").exists():
+            state = _load_checkpoint(config.out_dir / "checkpoint.msgpack", state)
+        _drop_records_after(config.out_dir, int(state.step))
+        return cls(config, state, base_key)
+
+
+def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun], until: int, start: float,
+             progress, bar) -> None:
+    """Train `runs` (all at the same step) together up to step `until`: chunks of log_every steps,
+    vmapped over the runs when there are several, with their logs, evaluations and checkpoints."""
+    c = runs[0].config
+    step = runs[0].step
+    train_keys = jnp.stack([jax.random.fold_in(r.base_key, 1) for r in runs])
+    states = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[r.state for r in runs])
+    while step < until:
+        length = min(c.log_every, until - step)
+        if len(runs) == 1:  # the plain program: a run trained alone gives exactly its own numbers
+            state, metrics = trainer.run_chunk(runs[0].state, train_keys[0], data.train, length=length)
+            states = jax.tree_util.tree_map(lambda x: x[None], state)
+            metrics = jax.tree_util.tree_map(lambda x: x[None], metrics)
+        else:
+            states, metrics = trainer.run_chunks(states, train_keys, data.train, length=length)
+        step += length
+        metrics = jax.device_get(metrics)
+        for j, run in enumerate(runs):
+            run.state = jax.tree_util.tree_map(lambda x, j=j: x[j], states)
+            record = {k: float(v[j]) for k, v in metrics.items()}
+            bad = [k for k, v in record.items() if not math.isfinite(v)]
             if bad:
-                raise TrainingError(f"{out}: non-finite {', '.join(bad)} at step {step}; the last good "
-                                    f"checkpoint (if any) is untouched in {out / 'checkpoint.msgpack'}")
-            append_jsonl(out / "metrics.jsonl", {"step": step, "wall_time": time.perf_counter() - start, **metrics})
-            if step % config.eval_every == 0 or step == config.steps:
-                result = evaluator.evaluate(state, jax.random.fold_in(base_key, 2 + step), seed=config.seed * 7919 + step)
-                append_jsonl(out / "eval.jsonl", {"step": step, **result.summary()})
-                progress.update(bar, status=f"p_test {result.returns['p_test'].mean():.1f} "
-                                            f"p_train {result.returns['p_train'].mean():.1f}")
-            if step % config.checkpoint_every == 0 or step == config.steps:
-                atomic_write_bytes(out / "checkpoint.msgpack", flax.serialization.to_bytes(state))
-            progress.update(bar, completed=step)
-    summary = summarize_run(out)
-    atomic_write_json(out / "eval.json", summary)
-    return summary
+                raise TrainingError(f"{run.out}: non-finite {', '.join(bad)} at step {step}; the last good "
+                                    f"checkpoint (if any) is untouched in {run.out / 'checkpoint.msgpack'}")
+            append_jsonl(run.out / "metrics.jsonl", {"step": step, "wall_time": time.perf_counter() - start, **record})
+        if step % c.eval_every == 0 or step == c.steps:
+            keys = jnp.stack([jax.random.fold_in(r.base_key, 2 + step) for r in runs])
+            results = evaluator.evaluate_runs(states, keys, [r.config.seed * 7919 + step for r in runs])
+            for run, result in zip(runs, results):
+                append_jsonl(run.out / "eval.jsonl", {"step": step, **result.summary()})
+            progress.update(bar, status=f"p_test {np.mean([r.returns['p_test'].mean() for r in results]):.1f} "
+                                        f"p_train {np.mean([r.returns['p_train'].mean() for r in results]):.1f}")
+        if step % c.checkpoint_every == 0 or step == c.steps:
+            for run in runs:
+                atomic_write_bytes(run.out / "checkpoint.msgpack", flax.serialization.to_bytes(run.state))
+        progress.update(bar, completed=step)  # the runs behind set the pace
+
+
+def describe_device() -> str:
+    """The accelerator JAX runs on, as JAX reports it (e.g. "gpu: NVIDIA H100 80GB HBM3 x1")."""
+    devices = jax.devices()
+    first = devices[0]
+    kind = first.device_kind if first.platform != "cpu" else f"{os.cpu_count()}-core CPU ({platform.machine()})"
+    return f"{first.platform}: {kind} x{len(devices)}"
 
 
 def summarize_run(out: Path, last: int = 5) -> dict:
@@ -222,14 +356,22 @@ def summarize_run(out: Path, last: int = 5) -> dict:
         summary[f"{source}_return"] = float(np.mean([e[f"{source}_return"] for e in tail]))
         summary[f"{source}_inference_error"] = float(np.mean([e[f"{source}_inference_error"] for e in tail]))
         summary[f"{source}_task_returns"] = evals[-1][f"{source}_task_returns"]
-    summary["curve"] = [{k: e[k] for k in ("step", "p_test_return", "p_train_return")} for e in evals]
+    curve_keys = ("step", "p_test_return", "p_train_return", "p_test_inference_error", "p_train_inference_error")
+    summary["curve"] = [{k: e[k] for k in curve_keys if k in e} for e in evals]
+    summary["config"] = {k: v for k, v in config.items() if k != "runtime"}
     return summary
 
 
+# Where a run lives is not what it is: these fields may differ when a run directory is moved or resumed.
+NOT_IDENTITY = ("out_dir", "data_root")
+
+
 def _check_run_dir(out: Path, config: TrainConfig) -> None:
-    """A run directory belongs to one family/method/seed: refuse to resume someone else's."""
+    """A run directory belongs to one resolved config: refuse to resume a run that differs in any setting."""
     current = json.loads(json.dumps(asdict(config), default=str))
-    check_run_config(out / "config.json", current, ("family", "method", "seed", "scale", "noise", "data_seed"))
+    identity = tuple(k for k in current if k not in NOT_IDENTITY)
+    runtime = {"device": describe_device(), "jax_version": jax.__version__, "commit": git_commit()}
+    check_run_config(out / "config.json", {**current, "runtime": runtime}, identity)
 
 
 def _load_checkpoint(path: Path, template: TrainState) -> TrainState:

@@ -207,12 +207,14 @@ def ensure_family_data(
     zoo_dir: str | Path | None = None,
     progress: bool = True,
     cache: bool = True,
+    workers: int | None = None,
 ) -> FamilyData:
-    """Collect the data if it is not on disk yet (see `collect`), then load it."""
+    """Collect the data if it is not on disk yet (see `collect`; `workers`: its worker processes,
+    default all cores), then load it."""
     from bati.data.collect import collect
 
     collect(family, scale, seed, noise, root, n_episodes=n_episodes, n_context_episodes=n_context_episodes,
-            zoo_dir=zoo_dir, progress=progress)
+            zoo_dir=zoo_dir, progress=progress, workers=workers)
     return load_family_data(family, scale, seed, noise, root, cache=cache)
 
 

@@ -14,11 +14,15 @@ For the split `train, test = family.split_tasks(seed)` (20 + 20 tasks):
 "The expert for task M" is the family's task-conditioned SAC conditioned on M's parameters
 (design deviation: one expert per family). Experts act stochastically; every episode is run in
 the family's env with its default eps (or `noise`). All episodes are stepped in lockstep chunks
-(one batched expert call per step) and each dataset is written as soon as its episodes are done.
+of CHUNK envs (one batched expert call per step); a chunk's episodes depend only on the seed, the
+plan and the chunk's index, so chunks are spread over worker processes (`workers`, default: all
+cores) and the written datasets do not depend on how many there are. The main process writes
+each dataset, in plan order, as soon as its episodes are done.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 import time
 import uuid
@@ -143,13 +147,17 @@ def collect(
     n_context_episodes: int | None = None,
     zoo_dir: str | Path | None = None,
     progress: bool = True,
+    workers: int | None = None,
 ) -> CollectResult:
     """Collect (or find cached) the datasets of `family` under `<root>/<Family>/<scale>-seed<S>-eps<eps>`.
 
     `n_episodes` / `n_context_episodes` override the scale's sizes (for tests and experiments);
-    `zoo_dir` is where the expert is loaded from (default: the package zoo).
+    `zoo_dir` is where the expert is loaded from (default: the package zoo). `workers` processes
+    roll out the episodes (default: all cores, at most one per chunk of CHUNK episodes); the
+    datasets written are the same whatever their number.
     """
     start = time.perf_counter()
+    workers = check_workers(workers)
     fam = get_family(family)
     noise = fam.validate_noise(noise)
     default_n, default_ctx = scale_sizes(family, scale)
@@ -162,6 +170,8 @@ def collect(
         return CollectResult(target, cached, True, time.perf_counter() - start)
 
     plan = make_plan(fam, seed, n_episodes, n_context_episodes)
+    n_chunks = -(-plan.n_episodes // CHUNK)
+    workers = min(default_workers() if workers is None else workers, n_chunks)
     load_start = time.perf_counter()
     expert = load_expert(family, zoo_dir)  # FileNotFoundError naming `bati experts train --family X`
     timings = {"expert_load_s": time.perf_counter() - load_start}
@@ -191,7 +201,8 @@ def collect(
         collection_id = uuid.uuid4().hex
         base_meta = {"family": family, "scale": scale, "seed": seed, "noise": noise, "commit": commit,
                      "collection_id": collection_id}
-        timings.update(run_collection(fam, plan, expert, noise, seed, tmp, base_meta, progress=progress))
+        timings.update(run_collection(fam, plan, expert, noise, seed, tmp, base_meta, progress=progress,
+                                      workers=workers, zoo_dir=zoo_dir))
         manifest = {
             "format": store.FORMAT_VERSION,
             **base_meta,
@@ -210,6 +221,7 @@ def collect(
             "transitions": plan.n_episodes * EPISODE_LENGTH,
             "expert": {"train_steps": expert.meta.get("train_steps"), "seed": expert.meta.get("seed")},
             "collect_wall_time_s": round(time.perf_counter() - start, 2),
+            "workers": workers,  # how it was made, not what it is: not part of the cache identity
             "timings_s": {k: round(v, 2) for k, v in timings.items()},
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "command": store.collect_command(fam, scale, seed, noise, root),
@@ -264,6 +276,119 @@ def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episode
     return manifest
 
 
+def default_workers() -> int:
+    """All cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def check_workers(workers: int | None) -> int | None:
+    """`workers` if it is None or an int >= 1, else a one-line ValueError."""
+    if workers is None:
+        return None
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise ValueError(f"workers={workers!r}: the number of worker processes must be an integer >= 1")
+    return int(workers)
+
+
+@dataclass
+class _Chunk:
+    """One lockstep chunk of episodes: all a process needs to roll it out (picklable)."""
+
+    index: int  # its position in the collection: its actions use fold_in(base_key, index)
+    tasks: list  # (K,) task of each episode
+    reset_seeds: list[int]  # (K,)
+    policy_tasks: np.ndarray  # (K, task_dim) task array the collecting expert is conditioned on
+
+
+def _chunks(family: TaskFamily, plan: Plan, chunk_size: int) -> list[_Chunk]:
+    jobs = [(d, e) for d in plan.datasets for e in range(len(d.collectors))]
+    train_arrays = np.stack([family.task_to_array(t) for t in plan.train_tasks]).astype(np.float32)
+    return [
+        _Chunk(
+            index,
+            [d.task for d, _ in jobs[first : first + chunk_size]],
+            [int(d.reset_seeds[e]) for d, e in jobs[first : first + chunk_size]],
+            train_arrays[[int(d.collectors[e]) for d, e in jobs[first : first + chunk_size]]],
+        )
+        for index, first in enumerate(range(0, len(jobs), chunk_size))
+    ]
+
+
+def _rollout_chunk(family: TaskFamily, expert, noise: float, seed: int, chunk: _Chunk, chunk_size: int,
+                   pool: list, on_step=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Roll out one chunk in lockstep: (observations (K, T + 1, obs_dim), actions, rewards).
+
+    The result depends only on (seed, chunk, chunk_size): envs are reset with the episodes' seeds
+    and the expert's actions use the chunk's own key, so any process can roll out any chunk.
+    `pool` holds the caller's envs (grown as needed, reused across chunks).
+    """
+    import jax
+
+    k_envs = len(chunk.tasks)
+    while len(pool) < k_envs:
+        pool.append(family.make_env(chunk.tasks[len(pool)], noise))
+    envs = pool[:k_envs]
+    policy_tasks = np.zeros((chunk_size, family.task_dim), np.float32)  # padded: one jit shape
+    policy_tasks[:k_envs] = chunk.policy_tasks
+    obs = np.zeros((k_envs, EPISODE_LENGTH + 1, envs[0].observation_space.shape[0]))
+    actions = np.zeros((k_envs, EPISODE_LENGTH, envs[0].action_space.shape[0]), np.float32)
+    rewards = np.zeros((k_envs, EPISODE_LENGTH), np.float32)
+    for k, env in enumerate(envs):
+        env.unwrapped.set_task(chunk.tasks[k])
+        obs[k, 0] = env.reset(seed=chunk.reset_seeds[k])[0]
+    # the expert runs on the CPU in every process (workers never touch an accelerator), so the
+    # actions do not depend on where, or in how many processes, the chunk is rolled out
+    with jax.default_device(jax.devices("cpu")[0]):
+        base_key = jax.random.fold_in(jax.random.PRNGKey(seed), _PLAN_STREAM)
+        chunk_key = jax.random.fold_in(base_key, chunk.index)
+        padded = np.zeros((chunk_size, obs.shape[-1]), np.float32)
+        for t in range(EPISODE_LENGTH):
+            padded[:k_envs] = obs[:, t]
+            step_key = jax.random.fold_in(chunk_key, t)
+            act = expert.act_from_arrays(padded, policy_tasks, False, step_key)
+            actions[:, t] = act[:k_envs]
+            for k, env in enumerate(envs):
+                next_obs, reward, _, _, _ = env.step(actions[k, t])
+                obs[k, t + 1] = next_obs
+                rewards[k, t] = reward
+            if on_step is not None:
+                on_step(k_envs)
+    return obs, actions, rewards
+
+
+# --- worker processes (spawned: JAX is not fork-safe) -------------------------------------------
+_WORKER_THREAD_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+}
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(family_name: str, zoo_dir: str | None, noise: float, seed: int, chunk_size: int) -> None:
+    """Per worker process, once: one thread (so N workers use N cores), CPU only, the settings."""
+    for name, value in _WORKER_THREAD_ENV.items():
+        if name == "XLA_FLAGS":
+            value = " ".join(filter(None, [os.environ.get(name, ""), value]))
+        os.environ[name] = value  # before jax is first imported (this module does not import it)
+    os.environ["JAX_PLATFORMS"] = "cpu"  # N processes must not share (or grab) one accelerator
+    _WORKER.update(family_name=family_name, zoo_dir=zoo_dir, noise=noise, seed=seed, chunk_size=chunk_size,
+                   pool=[])
+
+
+def _worker_rollout(chunk: _Chunk) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    w = _WORKER
+    if "expert" not in w:  # loaded here, not in the initializer: its errors reach the caller intact
+        w["family"] = get_family(w["family_name"])
+        w["expert"] = load_expert(w["family_name"], w["zoo_dir"])
+    return (chunk.index, *_rollout_chunk(w["family"], w["expert"], w["noise"], w["seed"], chunk,
+                                         w["chunk_size"], w["pool"]))
+
+
 def run_collection(
     family: TaskFamily,
     plan: Plan,
@@ -273,65 +398,100 @@ def run_collection(
     out_dir: Path,
     base_meta: dict,
     progress: bool = True,
+    *,
+    workers: int = 1,
+    zoo_dir: str | Path | None = None,
 ) -> dict[str, float]:
     """Roll out every planned episode (lockstep chunks of CHUNK envs) and write the datasets.
 
-    Returns wall times: rollout_s (envs + expert), write_s (Minari datasets).
+    With `workers` > 1 the chunks are rolled out by that many spawned processes (each loads the
+    family's expert from `zoo_dir` once); the main process writes each dataset, in plan order, as
+    soon as all its episodes are in. A chunk's episodes depend only on (seed, plan, chunk index),
+    so the written datasets are the same whatever the number of workers.
+    Returns wall times: rollout_s (envs + expert, incl. worker start-up), write_s (Minari datasets).
     """
-    import jax
-
+    workers = check_workers(workers) or 1
     start, write_s = time.perf_counter(), 0.0
-
+    chunk_size = CHUNK
+    chunks = _chunks(family, plan, chunk_size)
     jobs = [(d, e) for d in plan.datasets for e in range(len(d.collectors))]
-    train_arrays = np.stack([family.task_to_array(t) for t in plan.train_tasks])
-    n_jobs = len(jobs)
-    pool: list = []
+    workers = min(workers, len(chunks))
     buffers: dict[str, dict[str, list]] = {}
-    base_key = jax.random.fold_in(jax.random.PRNGKey(seed), _PLAN_STREAM)
+
+    def consume(chunk: _Chunk, obs: np.ndarray, actions: np.ndarray, rewards: np.ndarray) -> None:
+        """Buffer a chunk's episodes (chunks in order) and write the datasets they complete."""
+        nonlocal write_s
+        chunk_jobs = jobs[chunk.index * chunk_size : chunk.index * chunk_size + len(chunk.tasks)]
+        for k, (d, _) in enumerate(chunk_jobs):
+            buf = buffers.setdefault(d.name, {"obs": [], "act": [], "rew": []})
+            buf["obs"].append(obs[k])
+            buf["act"].append(actions[k])
+            buf["rew"].append(rewards[k])
+        for d in {d.name: d for d, _ in chunk_jobs}.values():
+            if len(buffers.get(d.name, {"obs": []})["obs"]) == len(d.collectors):
+                write_start = time.perf_counter()
+                _write(family, plan, d, buffers.pop(d.name), noise, out_dir, base_meta)
+                write_s += time.perf_counter() - write_start
 
     bar = _progress(progress, f"{family.name} data")
-    try:
-        with bar:
-            task_id = bar.add_task("collect", total=n_jobs * EPISODE_LENGTH)
-            for chunk_index, first in enumerate(range(0, n_jobs, CHUNK)):
-                chunk = jobs[first : first + CHUNK]
-                while len(pool) < len(chunk):
-                    pool.append(family.make_env(chunk[len(pool)][0].task, noise))
-                envs = pool[: len(chunk)]
-                policy_tasks = np.zeros((CHUNK, family.task_dim), np.float32)  # padded: one jit shape
-                policy_tasks[: len(chunk)] = train_arrays[[d.collectors[e] for d, e in chunk]]
-                obs = np.zeros((len(chunk), EPISODE_LENGTH + 1, envs[0].observation_space.shape[0]))
-                actions = np.zeros((len(chunk), EPISODE_LENGTH, envs[0].action_space.shape[0]), np.float32)
-                rewards = np.zeros((len(chunk), EPISODE_LENGTH), np.float32)
-                for k, (env, (d, e)) in enumerate(zip(envs, chunk)):
-                    env.unwrapped.set_task(d.task)
-                    obs[k, 0] = env.reset(seed=int(d.reset_seeds[e]))[0]
-                chunk_key = jax.random.fold_in(base_key, chunk_index)
-                padded = np.zeros((CHUNK, obs.shape[-1]), np.float32)
-                for t in range(EPISODE_LENGTH):
-                    padded[: len(chunk)] = obs[:, t]
-                    step_key = jax.random.fold_in(chunk_key, t)
-                    act = expert.act_from_arrays(padded, policy_tasks, False, step_key)
-                    actions[:, t] = act[: len(chunk)]
-                    for k, env in enumerate(envs):
-                        next_obs, reward, _, _, _ = env.step(actions[k, t])
-                        obs[k, t + 1] = next_obs
-                        rewards[k, t] = reward
-                    bar.advance(task_id, len(chunk))
-                for k, (d, e) in enumerate(chunk):
-                    buf = buffers.setdefault(d.name, {"obs": [], "act": [], "rew": []})
-                    buf["obs"].append(obs[k])
-                    buf["act"].append(actions[k])
-                    buf["rew"].append(rewards[k])
-                for d in {d.name: d for d, _ in chunk}.values():
-                    if len(buffers.get(d.name, {"obs": []})["obs"]) == len(d.collectors):
-                        write_start = time.perf_counter()
-                        _write(family, plan, d, buffers.pop(d.name), noise, out_dir, base_meta)
-                        write_s += time.perf_counter() - write_start
-    finally:
-        for env in pool:
-            env.close()
+    with bar:
+        task_id = bar.add_task("collect", total=len(jobs) * EPISODE_LENGTH)
+        if workers == 1:
+            pool: list = []
+            try:
+                for chunk in chunks:
+                    arrays = _rollout_chunk(family, expert, noise, seed, chunk, chunk_size, pool,
+                                            on_step=lambda n: bar.advance(task_id, n))
+                    consume(chunk, *arrays)
+            finally:
+                for env in pool:
+                    env.close()
+        else:
+            _run_parallel(family, chunks, chunk_size, noise, seed, workers, zoo_dir, consume,
+                          lambda n: bar.advance(task_id, n * EPISODE_LENGTH))
     return {"rollout_s": time.perf_counter() - start - write_s, "write_s": write_s}
+
+
+def _run_parallel(family: TaskFamily, chunks: list[_Chunk], chunk_size: int, noise: float, seed: int,
+                  workers: int, zoo_dir, consume, advance) -> None:
+    """Roll out `chunks` in `workers` spawned processes; `consume` them in order as they finish."""
+    import multiprocessing
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    executor = ProcessPoolExecutor(
+        max_workers=workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_worker_init,
+        initargs=(family.name, None if zoo_dir is None else str(zoo_dir), noise, seed, chunk_size),
+    )
+    window = 4 * workers  # chunks submitted ahead of the next one to consume (bounds the memory)
+    pending: dict = {}  # future -> chunk index
+    done: dict[int, tuple] = {}  # finished chunks waiting for an earlier one
+    next_submit = next_consume = 0
+    ok = False
+    try:
+        while next_consume < len(chunks):
+            while next_submit < len(chunks) and next_submit < next_consume + window:
+                pending[executor.submit(_worker_rollout, chunks[next_submit])] = next_submit
+                next_submit += 1
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in finished:
+                del pending[future]
+                index, *arrays = future.result()  # a worker's exception is re-raised here
+                done[index] = arrays
+                advance(len(chunks[index].tasks))
+            while next_consume in done:
+                consume(chunks[next_consume], *done.pop(next_consume))
+                next_consume += 1
+        ok = True
+    finally:
+        if not ok:  # an error or an interrupt: stop the workers now, not after their current chunk
+            for future in pending:
+                future.cancel()
+            for process in list((getattr(executor, "_processes", None) or {}).values()):
+                if process.is_alive():
+                    process.terminate()
+        executor.shutdown(wait=True, cancel_futures=True)
 
 
 def _write(family: TaskFamily, plan: Plan, d: DatasetPlan, buf: dict, noise: float, out_dir: Path,

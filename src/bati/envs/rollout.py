@@ -38,12 +38,18 @@ def rollout(
     tasks: Sequence[Task],
     act: ActFn,
     noise: float | None,
-    seed: int,
+    seed: int | Sequence[int],
     length: int = EPISODE_LENGTH,
 ) -> Episodes:
-    """Roll out `act` for one episode in each task (env i is reset with seed + i)."""
+    """Roll out `act` for one episode in each task.
+
+    `seed`: an int (env i is reset with seed + i) or one reset seed per task.
+    """
+    reset_seeds = [seed + i for i in range(len(tasks))] if isinstance(seed, (int, np.integer)) else list(seed)
+    if len(reset_seeds) != len(tasks):
+        raise ValueError(f"{len(reset_seeds)} reset seeds for {len(tasks)} tasks")
     envs = [family.make_env(task, noise) for task in tasks]
-    observations = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)])
+    observations = np.stack([env.reset(seed=int(s))[0] for s, env in zip(reset_seeds, envs)])
     record: dict[str, list] = {k: [] for k in ("obs", "act", "rew", "next", "free", "used")}
     for step in range(length):
         actions = np.asarray(act(observations, step), dtype=np.float32)

@@ -21,7 +21,7 @@ from bati.io import atomic_write_json, atomic_write_text
 from bati.methods import METHODS
 from bati.report.curves import plot_learning_curves
 from bati.report.tables import results_markdown
-from bati.train import TrainConfig, train
+from bati.train import TrainConfig, check_seeds, train_seeds
 
 
 @dataclass
@@ -57,19 +57,17 @@ def run_main_job(config: MainJobConfig, show_progress: bool = True) -> dict:
     start = time.perf_counter()
     family = get_family(config.family)
     methods = resolve_methods(config.methods)
+    check_seeds(config.seeds)
     out = config.out_dir or Path("runs") / config.family / config.scale
     data = ensure_family_data(config.family, config.scale, 0, config.noise, config.data_root, progress=show_progress)
     oracle = oracle_return(config.family, data.test_tasks, data.noise)
 
     rows, run_dirs = [], {}
     for method in methods:
-        summaries = []
-        for seed in config.seeds:
-            run_dir = out / f"{method}-seed{seed}"
-            summaries.append(train(TrainConfig(family=config.family, method=method, seed=seed, scale=config.scale,
-                                               steps=config.steps, noise=config.noise, data_root=config.data_root,
-                                               out_dir=run_dir), show_progress=show_progress))
-            run_dirs.setdefault(method, []).append(run_dir)
+        train_config = TrainConfig(family=config.family, method=method, scale=config.scale, steps=config.steps,
+                                   noise=config.noise, data_root=config.data_root)
+        summaries = train_seeds(train_config, config.seeds, show_progress=show_progress, runs_dir=out)
+        run_dirs[method] = [out / f"{method}-seed{seed}" for seed in config.seeds]
         keys = ("p_train_return", "p_test_return", "p_train_inference_error", "p_test_inference_error")
         rows.append({"method": method, **{k: [s[k] for s in summaries] for k in keys}})
 

@@ -7,12 +7,13 @@ from bati.methods.bati import BATI, BATIReward
 from bati.methods.csro import CSRO
 from bati.methods.dpt import DPT
 from bati.methods.focal import FOCAL
+from bati.methods.no_context import NoContext
 from bati.methods.oracle import Oracle
 from bati.methods.recon import Recon
 from bati.methods.unicorn import UNICORN
 
 METHODS = {"bati": BATI, "bati-r": BATIReward, "recon": Recon, "unicorn": UNICORN, "csro": CSRO,
-           "focal": FOCAL, "dpt": DPT, "oracle": Oracle}
+           "focal": FOCAL, "dpt": DPT, "oracle": Oracle, "no-context": NoContext}
 
 
 def make_method(name: str, spec: MethodSpec) -> TaskInference:

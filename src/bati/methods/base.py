@@ -47,6 +47,8 @@ class TaskInference:
     """`loss` also reads batch["positive_context"]: a second, independent context of each task."""
     needs_expert_actions: bool = False
     """`loss` reads batch["expert_actions"]: the true task's expert's action at each observation."""
+    infers_task: bool = True
+    """The latent says which task it is (False for the `no-context` control: its error is undefined)."""
     acts_itself: bool = False
     """The method is its own policy (`act(params, obs, z)`); IQL is not trained for it."""
 

@@ -1,0 +1,392 @@
+"""`bati sweep`: a grid of training runs (cells) on a local process pool or on Ray, resumable.
+
+A cell is one fully resolved `TrainConfig`; its identity is that whole config (where it lives
+aside). Cells that differ only in their seed form one job, trained as one program vmapped over
+the seeds (`train_seeds`). Layout of a sweep directory:
+
+    <out>/sweep.json                               the cells and their status (rewritten atomically)
+    <out>/<Family>/<scale>-eps<eps>-<hash>/<method>-seed<s>/   one run directory per cell
+
+`<hash>` digests the cell's config without method and seed, so the runs of one setting sit side by
+side (what `bati report` tabulates together). A finished cell (its eval.json holds the same config)
+is skipped; a failed job is recorded with its error and the others go on; a rerun after a kill runs
+only what is missing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import socket
+import time
+import traceback
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+from typing import Any, Literal
+
+from bati.errors import BatiError
+from bati.io import atomic_write_json
+from bati.train import NOT_IDENTITY, TrainConfig
+
+AXES = ("family", "method", "seed", "scale", "noise")
+"""Grid axes; every other TrainConfig field can be set for all cells with `overrides`."""
+NOT_OVERRIDABLE = AXES + ("out_dir", "data_root", "iql")
+
+
+class SweepError(BatiError, ValueError):
+    """A sweep that cannot start (bad grid, backend, directory): nothing was written."""
+
+
+@dataclass
+class Grid:
+    """families x methods x seeds x noises x scales, plus TrainConfig settings common to every cell."""
+
+    families: tuple[str, ...] = ("PointGoal",)
+    methods: tuple[str, ...] = ("bati", "bati-r", "recon")
+    """Method names, or `all` for every method."""
+    seeds: tuple[int, ...] = (0,)
+    noises: tuple[float, ...] = ()
+    """Per-step noise levels eps (empty: each family's default)."""
+    scales: tuple[Literal["quick", "paper"], ...] = ("quick",)
+    settings: tuple[str, ...] = ()
+    """KEY=VALUE TrainConfig settings for every cell, e.g. `steps=12000 context_length=50` (values as JSON)."""
+
+    def overrides(self) -> dict[str, Any]:
+        """The settings as TrainConfig keyword arguments (SweepError for a malformed or unknown one)."""
+        names = {f.name for f in fields(TrainConfig)}
+        out: dict[str, Any] = {}
+        for item in self.settings:
+            key, sep, text = item.partition("=")
+            key = key.strip().replace("-", "_")
+            if not sep or not key:
+                raise SweepError(f"setting {item!r} is not KEY=VALUE")
+            if key not in names:
+                raise SweepError(f"unknown setting {key!r}; settable: "
+                                 f"{', '.join(n for n in sorted(names) if n not in NOT_OVERRIDABLE)}")
+            if key in NOT_OVERRIDABLE:
+                raise SweepError(f"{key} cannot be set per cell: use the grid's axes (families, methods, seeds, "
+                                 "noises, scales), --out-dir and --data-root")
+            try:
+                value = json.loads(text)
+            except ValueError:
+                value = text
+            out[key] = tuple(value) if isinstance(value, list) else value
+        return out
+
+
+@dataclass(frozen=True)
+class Cell:
+    config: TrainConfig  # resolved, out_dir set
+
+    @property
+    def id(self) -> str:
+        return config_digest(self.config, exclude=NOT_IDENTITY)
+
+    @property
+    def job_key(self) -> str:
+        return config_digest(self.config, exclude=NOT_IDENTITY + ("seed",))
+
+    @property
+    def label(self) -> str:
+        c = self.config
+        return f"{c.family}/{c.method}/seed{c.seed}"
+
+
+def config_digest(config: TrainConfig, exclude: Iterable[str] = ()) -> str:
+    """A short stable digest of a config's settings (JSON with sorted keys)."""
+    settings = {k: v for k, v in config_record(config).items() if k not in set(exclude)}
+    return hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:10]
+
+
+def config_record(config: TrainConfig) -> dict:
+    """The config as its run directory's config.json records it."""
+    return json.loads(json.dumps(asdict(config), default=str))
+
+
+def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Cell]:
+    """The grid's cells, each a resolved config with its run directory; bad values raise SweepError."""
+    from bati.envs import get_family
+    from bati.experiments.main_job import resolve_methods
+
+    for axis in ("families", "methods", "seeds", "scales"):
+        if not getattr(grid, axis):
+            raise SweepError(f"the grid's {axis} are empty: give at least one")
+    overrides = grid.overrides()
+    try:
+        methods = resolve_methods(tuple(grid.methods))
+        families = [get_family(name).name for name in dict.fromkeys(grid.families)]
+        cells = []
+        for family in families:
+            noises = list(dict.fromkeys(grid.noises)) or [None]
+            for scale in dict.fromkeys(grid.scales):
+                for noise in noises:
+                    for method in methods:
+                        for seed in dict.fromkeys(grid.seeds):
+                            config = TrainConfig(family=family, method=method, seed=seed, scale=scale, noise=noise,
+                                                 data_root=data_root, **overrides).resolved()
+                            cells.append(Cell(replace(config, out_dir=run_dir(out_dir, config))))
+    except (ValueError, TypeError) as err:  # TaskError is a ValueError
+        raise SweepError(str(err)) from err
+    return cells
+
+
+def run_dir(out_dir: Path, config: TrainConfig) -> Path:
+    setting = config_digest(config, exclude=NOT_IDENTITY + ("method", "seed"))[:8]
+    return Path(out_dir) / config.family / f"{config.scale}-eps{config.noise:g}-{setting}" / \
+        f"{config.method}-seed{config.seed}"
+
+
+def is_done(cell: Cell) -> bool:
+    """The cell's run finished with this very config (its eval.json says so)."""
+    path = cell.config.out_dir / "eval.json"
+    try:
+        saved = json.loads(path.read_text()).get("config", {})
+    except (OSError, ValueError, AttributeError):
+        return False
+    current = config_record(cell.config)
+    return all(saved.get(k) == v for k, v in current.items() if k not in NOT_IDENTITY)
+
+
+# --- jobs ------------------------------------------------------------------------------------
+@dataclass
+class Job:
+    """The cells of one setting and method, differing only in their seeds: one vmapped program."""
+
+    cells: list[Cell]
+
+    @property
+    def config(self) -> TrainConfig:
+        return self.cells[0].config
+
+    @property
+    def seeds(self) -> tuple[int, ...]:
+        return tuple(c.config.seed for c in self.cells)
+
+    @property
+    def label(self) -> str:
+        c = self.config
+        return f"{c.family} {c.scale} eps={c.noise:g} {c.method} seeds {list(self.seeds)}"
+
+
+def make_jobs(cells: list[Cell]) -> list[Job]:
+    jobs: dict[str, Job] = {}
+    for cell in cells:
+        jobs.setdefault(cell.job_key, Job([])).cells.append(cell)
+    return list(jobs.values())
+
+
+def run_job(config: TrainConfig, seeds: tuple[int, ...], runs_dir: Path) -> list[dict]:
+    """What a worker runs: the job's seeds in one program (no progress bars: the sweep shows its table)."""
+    from bati.train import train_seeds
+
+    summaries = train_seeds(replace(config, out_dir=None), seeds, show_progress=False, runs_dir=runs_dir)
+    return [{k: s[k] for k in ("seed", "p_train_return", "p_test_return")} for s in summaries]
+
+
+def prepare_data(cells: list[Cell], progress: bool) -> None:
+    """Collect every collection the cells need once, up front (in parallel over tasks), so that
+    workers only read data and never collect the same collection twice."""
+    from bati.data.collect import collect
+
+    needed = {(c.family, c.scale, c.data_seed, c.noise, str(c.data_root), c.episodes_per_task, c.context_episodes)
+              for c in (cell.config for cell in cells)}
+    for family, scale, seed, noise, root, n_episodes, n_context in sorted(needed, key=str):
+        collect(family, scale, seed, noise, root, n_episodes=n_episodes, n_context_episodes=n_context,
+                progress=progress)
+
+
+# --- the sweep -------------------------------------------------------------------------------
+@dataclass
+class SweepResult:
+    out_dir: Path
+    status: dict[str, str]  # cell id -> done | failed | skipped (done before)
+    errors: dict[str, str]
+    wall_time_s: float
+
+    def count(self, status: str) -> int:
+        return sum(s == status for s in self.status.values())
+
+
+def sweep(grid: Grid, out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
+          backend: Literal["local", "ray"] = "local", address: str | None = None,
+          show_progress: bool = True) -> SweepResult:
+    """Run every cell of `grid` that is not finished yet; see the module docstring."""
+    start = time.perf_counter()
+    out_dir = Path(out_dir)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise SweepError(f"workers must be an integer >= 1, got {workers!r}")
+    if backend not in ("local", "ray"):
+        raise SweepError(f"unknown backend {backend!r}; choose local or ray")
+    check_out_dir(out_dir)
+    cells = expand(grid, out_dir, data_root)
+    if backend == "ray":
+        ray = connect_ray(address)
+    status = {c.id: ("skipped" if is_done(c) else "pending") for c in cells}
+    errors: dict[str, str] = {}
+    pending = [c for c in cells if status[c.id] == "pending"]
+    jobs = make_jobs(pending)
+
+    def record() -> None:
+        atomic_write_json(out_dir / "sweep.json", {
+            "grid": asdict(grid), "data_root": str(data_root), "backend": backend, "workers": workers,
+            "cells": {c.id: {"label": c.label, "run_dir": str(c.config.out_dir), "status": status[c.id],
+                             **({"error": errors[c.id]} if c.id in errors else {})} for c in cells},
+        })
+
+    record()
+    if jobs:
+        prepare_data(pending, progress=show_progress)
+    table = LiveTable(cells, status, show_progress)
+    with table:
+        def finished(job: Job, error: str | None) -> None:
+            for cell in job.cells:
+                status[cell.id] = "failed" if error else "done"
+                if error:
+                    errors[cell.id] = error
+            record()
+            table.refresh()
+
+        def running(job: Job) -> None:
+            for cell in job.cells:
+                status[cell.id] = "running"
+            table.refresh()
+
+        if backend == "ray":
+            _run_on_ray(ray, jobs, workers, running, finished)
+        else:
+            _run_locally(jobs, workers, running, finished)
+    return SweepResult(out_dir, {c.id: status[c.id] for c in cells}, errors, time.perf_counter() - start)
+
+
+def _describe(err: BaseException) -> str:
+    return f"{type(err).__name__}: {err}"
+
+
+def _run_locally(jobs: list[Job], workers: int, running: Callable, finished: Callable) -> None:
+    if workers == 1:  # in this process, one job after the other
+        for job in jobs:
+            running(job)
+            try:
+                run_job(job.config, job.seeds, job.config.out_dir.parent)
+            except Exception as err:  # a failed job is recorded; the sweep goes on
+                traceback.print_exc()
+                finished(job, _describe(err))
+            else:
+                finished(job, None)
+        return
+    import multiprocessing
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    # Several workers may share one GPU: none may grab most of its memory up front. Spawned workers
+    # inherit this environment; JAX is not fork-safe, hence "spawn".
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        queue, futures = list(jobs), {}
+        while queue or futures:
+            while queue and len(futures) < workers:
+                job = queue.pop(0)
+                futures[pool.submit(run_job, job.config, job.seeds, job.config.out_dir.parent)] = job
+                running(job)
+            done, _ = wait(futures, return_when=FIRST_COMPLETED)
+            for future in done:
+                err = future.exception()
+                finished(futures.pop(future), _describe(err) if err else None)
+
+
+def connect_ray(address: str | None):
+    """Ray, connected (a local cluster when `address` is None); SweepError when it cannot be."""
+    try:
+        import ray
+    except ImportError as err:
+        raise SweepError('the Ray backend needs Ray: pip install -e ".[ray]"') from err
+    if address and address != "auto":
+        host, _, port = address.rpartition(":")
+        try:
+            with socket.create_connection((host or "127.0.0.1", int(port)), timeout=3):
+                pass
+        except (OSError, ValueError) as err:
+            raise SweepError(f"cannot reach a Ray cluster at {address!r} ({err}); start one with `ray start --head` "
+                             "or leave --address out for a local one") from err
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    ray.init(address=address, include_dashboard=False, ignore_reinit_error=True, log_to_driver=False,
+             runtime_env={"env_vars": {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}})
+    return ray
+
+
+def _run_on_ray(ray, jobs: list[Job], workers: int, running: Callable, finished: Callable) -> None:
+    remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
+    futures = {}
+    for job in jobs:  # Ray schedules them on the cluster's CPUs; at most `workers` run from this sweep
+        while len(futures) >= workers:
+            _ray_collect(ray, futures, finished)
+        futures[remote.remote(job.config, job.seeds, job.config.out_dir.parent)] = job
+        running(job)
+    while futures:
+        _ray_collect(ray, futures, finished)
+
+
+def _ray_collect(ray, futures: dict, finished: Callable) -> None:
+    (ref,), _ = ray.wait(list(futures), num_returns=1)
+    job = futures.pop(ref)
+    try:
+        ray.get(ref)
+    except Exception as err:  # RayTaskError wraps the job's own exception
+        cause = getattr(err, "cause", None) or err
+        finished(job, _describe(cause))
+    else:
+        finished(job, None)
+
+
+def check_out_dir(out_dir: Path) -> None:
+    """The sweep directory must be a directory we can write (SweepError otherwise, nothing written)."""
+    existing = next((p for p in (out_dir, *out_dir.parents) if p.exists()), None)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise SweepError(f"the sweep directory {out_dir} is a file")
+    if existing is not None and existing != out_dir and not existing.is_dir():
+        raise SweepError(f"cannot create the sweep directory {out_dir}: {existing} is a file")
+    if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
+        raise SweepError(f"the sweep directory {out_dir} is not writable ({existing} is not)")
+
+
+class LiveTable:
+    """A live table of the cells per job while the sweep runs (pending / running / done / failed)."""
+
+    def __init__(self, cells: list[Cell], status: dict[str, str], enabled: bool):
+        self.cells, self.status, self.enabled = cells, status, enabled
+        self.live = None
+
+    def render(self):
+        from rich.table import Table
+
+        counts = {s: sum(v == s for v in self.status.values()) for s in ("pending", "running", "done", "failed",
+                                                                          "skipped")}
+        table = Table(title="bati sweep: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n))
+        for column in ("family", "scale", "eps", "method", "seeds", "status"):
+            table.add_column(column)
+        style = {"done": "green", "failed": "red", "running": "yellow", "skipped": "dim"}
+        for job in make_jobs(self.cells):
+            states = sorted({self.status[c.id] for c in job.cells})
+            text = "/".join(states)
+            c = job.config
+            table.add_row(c.family, c.scale, f"{c.noise:g}", c.method, " ".join(map(str, job.seeds)),
+                          f"[{style.get(text, '')}]{text}" if text in style else text)
+        return table
+
+    def refresh(self) -> None:
+        if self.live is not None:
+            self.live.update(self.render())
+
+    def __enter__(self):
+        if self.enabled:
+            from rich.live import Live
+
+            self.live = Live(self.render(), refresh_per_second=2)
+            self.live.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self.live is not None:
+            self.live.__exit__(*exc)
+        return False

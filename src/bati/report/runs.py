@@ -1,0 +1,147 @@
+"""Reading training results: every `eval.json` under a directory, tolerant of old and broken files."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+# Config keys that do not make two runs' settings different (they are what a table compares or where
+# files went). Keys starting with "method_" are ignored as well.
+IGNORED_CONFIG_KEYS = frozenset({"method", "seed", "out_dir", "data_root", "method_config"})
+REQUIRED_KEYS = ("family", "method", "seed", "p_test_return", "p_train_return")
+
+
+class ReportWarning(UserWarning):
+    """A result file that was skipped or a group that is incomplete."""
+
+
+def _float(value) -> float:
+    """A JSON number, null or missing as a float (NaN for null / missing / not a number)."""
+    try:
+        return float(value) if value is not None else math.nan
+    except (TypeError, ValueError):
+        return math.nan
+
+
+@dataclass
+class RunResult:
+    """One training run's `eval.json` (fields absent from older files are None / empty)."""
+
+    path: Path
+    family: str
+    method: str
+    seed: int
+    p_test_return: float
+    p_train_return: float
+    p_test_inference_error: float = math.nan
+    p_train_inference_error: float = math.nan
+    scale: str | None = None
+    steps: int | None = None
+    evaluations_averaged: int | None = None
+    p_test_task_returns: list[float] = field(default_factory=list)
+    p_train_task_returns: list[float] = field(default_factory=list)
+    curve: list[dict] = field(default_factory=list)
+    config: dict | None = None
+    reference_returns: dict | None = None
+    data: dict | None = None
+    device: str | None = None
+    jax_version: str | None = None
+    commit: str | None = None
+    wall_time_s: float | None = None
+
+    @classmethod
+    def from_dict(cls, raw: dict, path: Path) -> RunResult:
+        missing = [k for k in REQUIRED_KEYS if k not in raw]
+        if missing:
+            raise ValueError(f"missing key(s) {', '.join(missing)}")
+        refs = raw.get("reference_returns")
+        if refs is not None:
+            refs = {"random": _float(refs.get("random")), "expert": _float(refs.get("expert"))}
+            finite = math.isfinite(refs["random"]) and math.isfinite(refs["expert"])
+            if not finite or refs["random"] == refs["expert"]:
+                refs = None  # unusable for normalisation
+        config = raw.get("config")
+        return cls(
+            path=path, family=str(raw["family"]), method=str(raw["method"]), seed=int(raw["seed"]),
+            p_test_return=_float(raw["p_test_return"]), p_train_return=_float(raw["p_train_return"]),
+            p_test_inference_error=_float(raw.get("p_test_inference_error")),
+            p_train_inference_error=_float(raw.get("p_train_inference_error")),
+            scale=raw.get("scale"), steps=None if raw.get("steps") is None else int(raw["steps"]),
+            evaluations_averaged=(None if raw.get("evaluations_averaged") is None
+                                  else int(raw["evaluations_averaged"])),
+            p_test_task_returns=list(raw.get("p_test_task_returns") or []),
+            p_train_task_returns=list(raw.get("p_train_task_returns") or []),
+            curve=list(raw.get("curve") or []), config=config if isinstance(config, dict) else None,
+            reference_returns=refs, data=raw.get("data") if isinstance(raw.get("data"), dict) else None,
+            device=raw.get("device"), jax_version=raw.get("jax_version"), commit=raw.get("commit"),
+            wall_time_s=None if raw.get("wall_time_s") is None else _float(raw["wall_time_s"]),
+        )
+
+    def settings(self) -> dict:
+        """The flattened config that decides the run's table (methods, seeds and paths left out).
+
+        Without a saved config (older files) the settings are the summary's family, scale and steps.
+        """
+        if self.config is None:
+            return {"family": self.family, "scale": self.scale, "steps": self.steps}
+        flat = _flatten({k: v for k, v in self.config.items()
+                         if k not in IGNORED_CONFIG_KEYS and not k.startswith("method_")})
+        flat.setdefault("family", self.family)
+        return flat
+
+    def settings_key(self) -> str:
+        return json.dumps(self.settings(), sort_keys=True, default=str)
+
+    def normalised(self, value: float) -> float:
+        """(value - random) / (expert - random); NaN without reference returns."""
+        if self.reference_returns is None:
+            return math.nan
+        low, high = self.reference_returns["random"], self.reference_returns["expert"]
+        return (value - low) / (high - low)
+
+
+def _flatten(config: dict, prefix: str = "") -> dict:
+    """Nested config dicts as dotted keys (e.g. iql.expectile); lists become tuples' JSON text."""
+    flat = {}
+    for key, value in config.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{name}."))
+        elif isinstance(value, list):
+            flat[name] = json.dumps(value)
+        else:
+            flat[name] = value
+    return flat
+
+
+def find_eval_files(directory: Path) -> list[Path]:
+    return sorted(Path(directory).rglob("eval.json"))
+
+
+def load_runs(directory: Path) -> list[RunResult]:
+    """All readable `eval.json` files under `directory` (recursively), sorted by path.
+
+    A file that cannot be read or parsed, or lacks a required key, is skipped with a ReportWarning
+    naming it. So is a second run with the same settings, method and seed (the first path is kept).
+    """
+    runs, seen = [], {}
+    for path in find_eval_files(directory):
+        try:
+            raw = json.loads(path.read_text())
+            if not isinstance(raw, dict):
+                raise ValueError("not a JSON object")
+            run = RunResult.from_dict(raw, path)
+        except (OSError, ValueError, TypeError, AttributeError) as err:
+            warnings.warn(f"skipping {path}: {err}", ReportWarning, stacklevel=2)
+            continue
+        key = (run.settings_key(), run.method, run.seed)
+        if key in seen:
+            warnings.warn(f"skipping {path}: same settings, method and seed as {seen[key]}", ReportWarning,
+                          stacklevel=2)
+            continue
+        seen[key] = path
+        runs.append(run)
+    return runs

@@ -1,0 +1,283 @@
+"""`bati report DIR`: tables, CSVs and curves from hand-made eval.json files with known numbers."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+
+from bati.cli import main
+from bati.report import ReportWarning, build_report, load_runs
+from bati.report.build import CSV_COLUMNS, method_order
+from bati.report.stats import improvement_interval, iqm, iqm_interval, probability_of_improvement
+
+RANDOM, EXPERT = -500.0, -250.0
+# PointGoal, eps 1 (new format): method -> per seed (p_train, p_test, inference error p_train, p_test).
+POINTGOAL = {
+    "bati": [(-280.0, -300.0, 0.2, 0.3), (-290.0, -310.0, 0.3, 0.4), (-300.0, -320.0, 0.4, 0.5)],
+    "recon": [(-270.0, -400.0, 0.1, 1.2), (-280.0, -410.0, 0.2, 1.3), (-290.0, -420.0, 0.3, 1.4)],
+    "no-context": [(-350.0, -350.0, None, None), (-360.0, -360.0, None, None), (-370.0, -370.0, None, None)],
+}
+
+
+def config(family, method, seed, noise=1.0, **extra):
+    return {"family": family, "method": method, "seed": seed, "scale": "quick", "steps": 3000, "noise": noise,
+            "context_length": 200, "eval_context_length": 200, "data_seed": 0, "task_batch": 16,
+            "batch_size": 64, "out_dir": f"runs/{family}/{method}-seed{seed}", "data_root": "data",
+            "iql": {"expectile": 0.7}, **extra}
+
+
+def write_run(root, family, method, seed, p_train, p_test, err_train, err_test, *, new=True, noise=1.0,
+              evaluations=5, steps=3000, subdir=""):
+    run_dir = root / subdir / family / f"{method}-seed{seed}"
+    run_dir.mkdir(parents=True)
+    curve = [{"step": s, "p_test_return": p_test + (steps - s) / 100 * (-1) ** seed,
+              "p_train_return": p_train + (steps - s) / 200} for s in range(300, steps + 1, 300)]
+    summary = {"family": family, "method": method, "seed": seed, "scale": "quick", "steps": steps,
+               "evaluations_averaged": evaluations, "p_test_return": p_test, "p_train_return": p_train,
+               "p_test_inference_error": err_test, "p_train_inference_error": err_train,
+               "p_test_task_returns": [p_test] * 3, "p_train_task_returns": [p_train] * 3, "curve": curve}
+    if new:
+        for point in curve:
+            point["p_test_inference_error"], point["p_train_inference_error"] = err_test, err_train
+        summary.update(config=config(family, method, seed, noise),
+                       reference_returns={"random": RANDOM, "expert": EXPERT},
+                       data={"n_episodes": 20, "n_context_episodes": 5, "transitions": 80000},
+                       device="cpu", jax_version="0.10.2", commit="abc1234", wall_time_s=12.5)
+    (run_dir / "eval.json").write_text(json.dumps(summary))
+    return run_dir
+
+
+@pytest.fixture
+def results(tmp_path):
+    """PointGoal (new format, eps 1 and eps 0.5) and HopperParam (old format: no config, no references)."""
+    root = tmp_path / "runs"
+    for method, seeds in POINTGOAL.items():
+        for seed, values in enumerate(seeds):
+            write_run(root, "PointGoal", method, seed, *values)
+            write_run(root, "PointGoal", method, seed, values[0] - 5, values[1] - 5, *values[2:], noise=0.5,
+                      subdir="eps0.5")
+    for method, base in (("bati", 1000.0), ("bati-r", 900.0), ("recon", 800.0)):
+        for seed in range(3):
+            write_run(root, "HopperParam", method, seed, base + 10 * seed, base - 100 + 10 * seed, 0.5, 0.6,
+                      new=False)
+    return root
+
+
+def read_csv(path):
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def table(report, family, noise=None):
+    found = [t for t in report["tables"] if t["settings"]["family"] == family
+             and (noise is None or t["settings"].get("noise") == noise)]
+    assert len(found) == 1, [t["title"] for t in report["tables"]]
+    return found[0]
+
+
+def row(entry, method):
+    return next(r for r in entry["rows"] if r["method"] == method)
+
+
+def test_grouping_titles_and_order(results):
+    report = build_report(results, reps=200)
+    assert len(report["tables"]) == 3  # PointGoal eps 1, PointGoal eps 0.5, HopperParam
+    eps1, eps05 = table(report, "PointGoal", 1.0), table(report, "PointGoal", 0.5)
+    assert "eps = 1" in eps1["title"] and "eps = 0.5" in eps05["title"]
+    for entry in (eps1, eps05):
+        for needle in ("PointGoal", "quick scale", "3,000 steps", "20 episodes per task", "C = 200"):
+            assert needle in entry["title"]
+        assert "80,000 transitions" in entry["markdown"] and "16 tasks × 64 transitions" in entry["markdown"]
+        assert [r["method"] for r in entry["rows"]] == ["bati", "recon", "no-context"]
+    hopper = table(report, "HopperParam")
+    assert [r["method"] for r in hopper["rows"]] == ["bati", "bati-r", "recon"]
+    assert "3,000 steps" in hopper["title"] and "eps not recorded" in hopper["title"]
+    assert "size not recorded" in hopper["markdown"]
+    assert sorted(["recon", "oracle", "bati-r", "csro", "no-context", "bati"], key=method_order) == [
+        "bati", "bati-r", "csro", "recon", "oracle", "no-context"]
+
+
+def test_mean_std_normalisation_ratio(results):
+    report = build_report(results, reps=200)
+    entry = table(report, "PointGoal", 1.0)
+    bati = row(entry, "bati")
+    assert bati["seeds"] == [0, 1, 2] and bati["n_seeds"] == 3
+    assert bati["p_test_mean"] == pytest.approx(-310.0)
+    assert bati["p_test_std"] == pytest.approx(math.sqrt(200 / 3))  # population std of -300, -310, -320
+    assert bati["p_train_mean"] == pytest.approx(-290.0)
+    assert "| bati | 0, 1, 2 | -290.0 ± 8.2 | -310.0 ± 8.2 |" in entry["markdown"]
+    # (x - random) / (expert - random), per run then averaged: -300 -> 0.8, -310 -> 0.76, -320 -> 0.72
+    assert bati["p_test_normalised_mean"] == pytest.approx(0.76)
+    assert bati["p_test_normalised_std"] == pytest.approx(np.std([0.8, 0.76, 0.72]))
+    assert bati["p_train_normalised_mean"] == pytest.approx(0.84)
+    assert bati["test_train_ratio_normalised"] == pytest.approx(0.76 / 0.84)
+    assert bati["test_train_ratio"] == pytest.approx(-310.0 / -290.0)
+    assert bati["p_test_inference_error_mean"] == pytest.approx(0.4)
+    assert bati["p_train_inference_error_mean"] == pytest.approx(0.3)
+    assert "p_test normalised" in entry["markdown"] and "0.76 ± 0.03" in entry["markdown"]
+    nocontext = row(entry, "no-context")
+    assert math.isnan(nocontext["p_test_inference_error_mean"])
+    expected = ("| no-context | 0, 1, 2 | -360.0 ± 8.2 | -360.0 ± 8.2 | 0.56 ± 0.03 | 0.56 ± 0.03 | 1.00 "
+                "| – | – |")
+    assert expected in entry["markdown"]
+
+
+def test_iqm_and_probability_of_improvement_in_report(results):
+    report = build_report(results, reps=300)
+    entry = table(report, "PointGoal", 1.0)
+    bati, recon, nocontext = (row(entry, m) for m in ("bati", "recon", "no-context"))
+    # 3 runs: int(0.25 * 3) = 0 cut at each end, so IQM = mean
+    assert bati["iqm_p_test"] == pytest.approx(0.76)
+    assert bati["iqm_low"] <= bati["iqm_p_test"] <= bati["iqm_high"]
+    assert bati["iqm_score"] == "p_test_normalised"
+    # bati beats recon and no-context in every seed pair
+    assert recon["p_bati_better"] == 1.0 and recon["p_bati_better_low"] == 1.0
+    assert nocontext["p_bati_better"] == 1.0
+    assert math.isnan(bati["p_bati_better"])  # not against itself
+    assert "P(bati > method) [95% CI]" in entry["markdown"] and "1.00 [1.00, 1.00]" in entry["markdown"]
+    hopper = table(report, "HopperParam")
+    assert hopper["rows"][0]["iqm_score"] == "p_test_return"
+    # bati-r's p_test (800, 810, 820) against bati's (900, 910, 920): bati-r never better
+    assert row(hopper, "bati")["p_bati_r_better"] == 0.0
+    for r in hopper["rows"]:
+        for col in ("p_bati_better", "p_bati_r_better"):
+            assert math.isnan(r[col]) or 0.0 <= r[f"{col}_low"] <= r[col] <= r[f"{col}_high"] <= 1.0
+
+
+def test_iqm_hand_checked():
+    assert iqm(np.array([0.0, 1.0, 2.0, 3.0, 100.0])) == pytest.approx(2.0)  # 1 cut each end: mean(1, 2, 3)
+    assert iqm(np.array([[1.0, 2.0], [3.0, 4.0]])) == pytest.approx(2.5)  # runs x tasks flattened
+    assert iqm(np.arange(8.0)) == pytest.approx(np.mean([2.0, 3.0, 4.0, 5.0]))
+    value, low, high = iqm_interval(np.array([1.0, 2.0, 3.0, 4.0, 5.0]), reps=500)
+    assert value == 3.0 and 1.0 <= low <= value <= high <= 5.0
+    assert iqm_interval(np.array([1.0, 2.0, 3.0, 4.0, 5.0]), reps=500) == (value, low, high)  # seeded
+    constant = iqm_interval(np.full((4, 3), 7.0), reps=50)
+    assert constant == (7.0, 7.0, 7.0)
+
+
+def test_probability_of_improvement_hand_checked():
+    assert probability_of_improvement([3.0, 4.0], [1.0, 2.0]) == 1.0
+    assert probability_of_improvement([1.0, 2.0], [3.0, 4.0]) == 0.0
+    assert probability_of_improvement([1.0, 3.0], [2.0, 2.0]) == 0.5
+    assert probability_of_improvement([2.0], [2.0]) == 0.5  # ties count one half
+    # per task, then averaged over tasks: task 0 always better (1), task 1 never (0)
+    x, y = np.array([[5.0, 0.0], [6.0, 1.0]]), np.array([[1.0, 5.0], [2.0, 6.0]])
+    assert probability_of_improvement(x, y) == 0.5
+    rng = np.random.default_rng(1)
+    p, low, high = improvement_interval(rng.normal(size=5), rng.normal(size=4), reps=300)
+    assert 0.0 <= low <= p <= high <= 1.0
+    assert improvement_interval([3.0, 4.0, 5.0], [0.0, 1.0], reps=100) == (1.0, 1.0, 1.0)
+
+
+def test_missing_references_give_no_normalised_columns(results):
+    report = build_report(results, reps=100)
+    hopper = table(report, "HopperParam")
+    assert "normalised" not in hopper["markdown"].split("\n| ---")[0].splitlines()[-1]
+    assert "p_test / p_train (returns)" in hopper["markdown"]
+    assert "References: not recorded" in hopper["markdown"]
+    assert row(hopper, "bati")["test_train_ratio"] == pytest.approx(910.0 / 1010.0)
+    rows = read_csv(hopper["csv"])
+    assert all(r["p_test_normalised_mean"] == "" and r["expert_return"] == "" for r in rows)
+
+
+def test_csv_columns_and_values(results):
+    report = build_report(results, reps=100)
+    entry = table(report, "PointGoal", 1.0)
+    with entry["csv"].open() as f:
+        assert tuple(next(csv.reader(f))) == CSV_COLUMNS
+    rows = read_csv(entry["csv"])
+    assert [r["method"] for r in rows] == ["bati", "recon", "no-context"]
+    bati = rows[0]
+    assert bati["seeds"] == "0 1 2" and bati["n_seeds"] == "3" and bati["missing_seeds"] == ""
+    assert float(bati["p_test_mean"]) == pytest.approx(-310.0)
+    assert float(bati["p_test_normalised_mean"]) == pytest.approx(0.76)
+    assert bati["steps"] == "3000" and bati["n_episodes"] == "20" and bati["transitions"] == "80000"
+    assert float(bati["noise"]) == 1.0 and float(bati["random_return"]) == RANDOM
+    assert rows[2]["p_test_inference_error_mean"] == ""  # no-context infers no task
+    runs = read_csv(report["out_dir"] / "runs.csv")
+    assert len(runs) == 9 + 9 + 9
+    assert {r["path"].endswith("eval.json") for r in runs} == {True}
+
+
+def test_files_written(results, tmp_path):
+    out = tmp_path / "elsewhere"
+    report = build_report(results, out, reps=100)
+    assert report["out_dir"] == out
+    md = (out / "report.md").read_text()
+    assert md == report["markdown"] and md.count("\n### ") == 3
+    for entry in report["tables"]:
+        assert entry["curves"].exists() and entry["curves"].suffix == ".png"
+        assert entry["curves"].read_bytes()[:4] == b"\x89PNG"
+        assert f"]({entry['curves'].name})" in md
+        assert entry["csv"].exists()
+    # inference-error curves only where the curves record the error (new format)
+    assert table(report, "PointGoal", 1.0)["inference_curves"].exists()
+    assert table(report, "HopperParam")["inference_curves"] is None
+    assert not (results / "report").exists()
+
+
+def test_default_out_dir_and_rerun(results):
+    first = build_report(results, reps=100)
+    assert first["out_dir"] == results / "report" and (results / "report" / "report.md").exists()
+    # deterministic, and its own output directory is not read back
+    assert build_report(results, reps=100)["markdown"] == first["markdown"]
+
+
+def test_incomplete_groups_and_bad_files(tmp_path):
+    root = tmp_path / "runs"
+    for seed in range(3):
+        write_run(root, "PointGoal", "bati", seed, -280.0, -300.0 - seed, 0.2, 0.3)
+    write_run(root, "PointGoal", "recon", 0, -270.0, -400.0, 0.1, 1.2, evaluations=3)
+    (root / "broken").mkdir()
+    (root / "broken" / "eval.json").write_text("{not json")
+    (root / "partial").mkdir()
+    (root / "partial" / "eval.json").write_text(json.dumps({"family": "PointGoal"}))
+    with pytest.warns(ReportWarning) as caught:
+        runs = load_runs(root)
+    messages = [str(w.message) for w in caught]
+    assert len(runs) == 4
+    assert any(str(root / "broken" / "eval.json") in m for m in messages)
+    assert any(str(root / "partial" / "eval.json") in m and "missing key" in m for m in messages)
+    with pytest.warns(ReportWarning):
+        report = build_report(root, reps=100)
+    entry = report["tables"][0]
+    recon = row(entry, "recon")
+    assert recon["missing_seeds"] == [1, 2] and recon["n_seeds"] == 1
+    assert "missing seed(s) 1, 2; only 3 evaluation(s) averaged" in entry["markdown"]
+    assert "| recon | 0 | -270.0 | -400.0 |" in entry["markdown"]  # one seed: no ± std
+    assert math.isnan(recon["iqm_p_test"]) and math.isnan(recon["p_bati_better"])  # fewer than 2 runs
+
+
+def test_cli_report(results, tmp_path, capsys):
+    out = tmp_path / "cli-out"
+    assert main(["report", str(results), "--out-dir", str(out)]) == 0
+    stdout, stderr = capsys.readouterr()
+    assert "PointGoal" in stdout and "HopperParam" in stdout and str(out) in stdout.replace("\n", "")
+    assert stderr == ""
+    assert (out / "report.md").exists()
+
+
+@pytest.mark.parametrize("case", ["missing", "file", "empty", "unreadable"])
+def test_cli_bad_input(tmp_path, capsys, case):
+    target = tmp_path / "target"
+    if case == "file":
+        target.write_text("x")
+    elif case == "empty":
+        (target / "sub").mkdir(parents=True)
+    elif case == "unreadable":
+        (target / "run").mkdir(parents=True)
+        (target / "run" / "eval.json").write_text("[]")
+    before = sorted(p for p in tmp_path.rglob("*"))
+    out = tmp_path / "out"
+    assert main(["report", str(target), "--out-dir", str(out)]) == 2
+    stdout, stderr = capsys.readouterr()
+    lines = [line for line in stderr.splitlines() if line.strip() and not line.startswith("warning:")]
+    assert len(lines) == 1 and lines[0].startswith("error:") and str(target.name) in lines[0], stderr
+    assert "Traceback" not in stdout + stderr
+    if case == "unreadable":
+        assert "warning: skipping" in stderr and "eval.json" in stderr
+    assert not out.exists() and sorted(p for p in tmp_path.rglob("*")) == before

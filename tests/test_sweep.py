@@ -1,0 +1,178 @@
+"""`bati sweep`: grid expansion, cell identity, skipping finished cells, failures, backends, bad input."""
+
+from __future__ import annotations
+
+import json
+import socket
+
+import pytest
+
+import bati.train as train_module
+from bati.cli import main
+from bati.experiments import sweep as sweep_module
+from bati.experiments.sweep import Grid, SweepError, expand, make_jobs, sweep
+
+TINY = ("steps=10", "eval_every=5", "log_every=5", "task_batch=4", "batch_size=8", "context_length=20",
+        "rl_hidden_dims=[32,32]")
+
+
+def test_grid_expands_to_every_cell_with_its_own_directory(tmp_path):
+    grid = Grid(families=("PointGoal", "HalfCheetahVel"), methods=("bati", "recon", "no-context"), seeds=(0, 1),
+                noises=(0.0, 0.5), settings=("steps=40",))
+    cells = expand(grid, tmp_path)
+    assert len(cells) == 2 * 3 * 2 * 2
+    assert len({c.id for c in cells}) == len(cells) == len({c.config.out_dir for c in cells})
+    assert all(c.config.steps == 40 for c in cells)
+    jobs = make_jobs(cells)
+    assert len(jobs) == 2 * 3 * 2 and all(job.seeds == (0, 1) for job in jobs)
+    cell = next(c for c in cells if (c.config.family, c.config.method, c.config.seed, c.config.noise)
+                == ("HalfCheetahVel", "recon", 1, 0.5))
+    assert cell.config.out_dir.parent.parent == tmp_path / "HalfCheetahVel"
+    assert cell.config.out_dir.name == "recon-seed1" and cell.config.out_dir.parent.name.startswith("quick-eps0.5-")
+
+
+def test_default_noise_and_all_methods_resolve_like_explicit_ones(tmp_path):
+    from bati.methods import METHODS
+
+    implicit = expand(Grid(methods=("all",)), tmp_path)
+    explicit = expand(Grid(methods=tuple(METHODS), noises=(1.0,)), tmp_path)  # PointGoal's default eps
+    assert [c.id for c in implicit] == [c.id for c in explicit]
+
+
+def test_a_cell_identity_is_its_whole_config(tmp_path):
+    base = expand(Grid(), tmp_path)[0]
+    for setting in ("steps=4000", "context_length=50", "eval_context_length=400", "learning_rate=0.001"):
+        assert expand(Grid(settings=(setting,)), tmp_path)[0].id != base.id, setting
+
+
+@pytest.mark.parametrize("grid, message", [
+    (Grid(families=("Bogus",)), "Bogus"),
+    (Grid(methods=("bati", "bogus")), "unknown method"),
+    (Grid(seeds=()), "seeds are empty"),
+    (Grid(families=()), "families are empty"),
+    (Grid(noises=(-1.0,)), "noise"),
+    (Grid(settings=("stepz=3",)), "unknown setting 'stepz'"),
+    (Grid(settings=("seed=3",)), "seed cannot be set"),
+    (Grid(settings=("steps",)), "not KEY=VALUE"),
+    (Grid(settings=("steps=0",)), "steps must be an integer >= 1"),
+    (Grid(seeds=(-1,)), "seed must be an integer >= 0"),
+])
+def test_bad_grids_are_refused_before_anything_is_written(tmp_path, grid, message):
+    with pytest.raises(SweepError, match=message):
+        sweep(grid, tmp_path / "sweep", show_progress=False)
+    assert not (tmp_path / "sweep").exists()
+
+
+def test_bad_workers_backend_and_directories(tmp_path):
+    with pytest.raises(SweepError, match="workers must be"):
+        sweep(Grid(), tmp_path / "s", workers=0, show_progress=False)
+    with pytest.raises(SweepError, match="unknown backend"):
+        sweep(Grid(), tmp_path / "s", backend="slurm", show_progress=False)
+    (tmp_path / "file").write_text("keep me")
+    with pytest.raises(SweepError, match="is a file"):
+        sweep(Grid(), tmp_path / "file", show_progress=False)
+    with pytest.raises(SweepError, match="is a file"):
+        sweep(Grid(), tmp_path / "file" / "sub", show_progress=False)
+    assert (tmp_path / "file").read_text() == "keep me"
+    assert not (tmp_path / "s").exists()
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_an_unreachable_ray_address_is_one_line_and_exit_2(tmp_path, capsys):
+    pytest.importorskip("ray")
+    code = main(["sweep", "--out-dir", str(tmp_path / "s"), "--backend", "ray", "--address",
+                 f"127.0.0.1:{_closed_port()}"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "cannot reach a Ray cluster" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "s").exists()
+
+
+def test_cli_bad_grid_is_one_line_and_exit_2(tmp_path, capsys):
+    code = main(["sweep", "--families", "PointGoal", "--methods", "bati", "bogus", "--out-dir", str(tmp_path / "s")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "unknown method" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "s").exists()
+
+
+# --- running cells (in this process, on synthetic data) ---------------------------------------
+@pytest.fixture
+def local(monkeypatch, synthetic_data):
+    data = synthetic_data("PointGoal")
+    monkeypatch.setattr(train_module, "ensure_family_data", lambda *a, **k: data)
+    monkeypatch.setattr(sweep_module, "prepare_data", lambda cells, progress: None)
+    return data
+
+
+def _statuses(out):
+    return sorted(cell["status"] for cell in json.loads((out / "sweep.json").read_text())["cells"].values())
+
+
+def test_a_sweep_runs_every_cell_then_skips_finished_ones(tmp_path, local, monkeypatch):
+    grid = Grid(methods=("bati", "no-context"), seeds=(0, 1), settings=TINY)
+    out = tmp_path / "sweep"
+    result = sweep(grid, out, show_progress=False)
+    assert result.count("done") == 4 and _statuses(out) == ["done"] * 4
+    for cell in expand(grid, out):
+        summary = json.loads((cell.config.out_dir / "eval.json").read_text())
+        assert summary["seed"] == cell.config.seed and summary["steps"] == 10
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("a finished cell was trained again")
+
+    monkeypatch.setattr(sweep_module, "run_job", no_training)
+    again = sweep(grid, out, show_progress=False)
+    assert again.count("skipped") == 4 and _statuses(out) == ["skipped"] * 4
+
+
+def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(tmp_path, local, monkeypatch):
+    grid = Grid(methods=("bati", "recon"), seeds=(0,), settings=TINY)
+    out = tmp_path / "sweep"
+    real = sweep_module.run_job
+
+    def flaky(config, seeds, runs_dir):
+        if config.method == "recon":
+            raise RuntimeError("disk on fire")
+        return real(config, seeds, runs_dir)
+
+    monkeypatch.setattr(sweep_module, "run_job", flaky)
+    result = sweep(grid, out, show_progress=False)
+    assert result.count("done") == 1 and result.count("failed") == 1
+    cells = json.loads((out / "sweep.json").read_text())["cells"]
+    failed = [c for c in cells.values() if c["status"] == "failed"]
+    assert failed[0]["label"] == "PointGoal/recon/seed0" and failed[0]["error"] == "RuntimeError: disk on fire"
+
+    ran = []
+    monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir: ran.append(config.method) or
+                        real(config, seeds, runs_dir))
+    rerun = sweep(grid, out, show_progress=False)
+    assert ran == ["recon"] and rerun.count("done") == 1 and rerun.count("skipped") == 1
+
+
+def test_cli_sweep_ends_with_the_report(tmp_path, local, capsys):
+    out = tmp_path / "sweep"
+    args = ["sweep", "--methods", "bati", "--seeds", "0", "--out-dir", str(out), "--settings", *TINY]
+    assert main(args) == 0
+    assert (out / "report" / "report.md").exists()
+    assert "1 cell(s) run" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_ray_backend_runs_a_tiny_grid_on_a_local_ray(tmp_path):
+    ray = pytest.importorskip("ray")
+    from bati.data.collect import collect
+
+    root = tmp_path / "data"
+    collect("PointGoal", "quick", 0, None, root, n_episodes=2, n_context_episodes=1, progress=False, workers=1)
+    grid = Grid(methods=("bati",), seeds=(0, 1), settings=TINY + ("episodes_per_task=2", "context_episodes=1"))
+    try:
+        result = sweep(grid, tmp_path / "sweep", data_root=root, backend="ray", workers=1, show_progress=False)
+    finally:
+        ray.shutdown()
+    assert result.count("done") == 2, result.errors
+    for cell in expand(grid, tmp_path / "sweep", root):
+        assert json.loads((cell.config.out_dir / "eval.json").read_text())["steps"] == 10
