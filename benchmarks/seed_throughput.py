@@ -1,0 +1,60 @@
+"""Seed-steps per second when k seeds train as one program vmapped over seeds (`Trainer.run_chunks`).
+
+    python benchmarks/seed_throughput.py [--family HalfCheetahVel] [--method bati] [--scale paper] [--seeds 1 3 8]
+
+Random data shaped like the family's (no collection needed). For each k: one chunk of `--length` steps
+compiles, then the median over `--chunks` chunks gives seconds per step of the k-seed program;
+seed-steps/s = k / that. Prints a Markdown table with the device JAX ran on. Targets (issue: engine):
+>= 3x the single-seed rate at paper scale on one H100 through vmapped seeds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import numpy as np
+from train_step import DIMS, random_data
+
+from bati.train import TrainConfig, Trainer, describe_device
+
+
+def seed_steps_per_second(trainer: Trainer, data, k: int, length: int, chunks: int) -> float:
+    keys = jax.random.split(jax.random.PRNGKey(0), k)
+    states = jax.vmap(trainer.init)(keys)
+    states, _ = trainer.run_chunks(states, keys, data.train, length=length)  # compile
+    jax.block_until_ready(states)
+    times = []
+    for _ in range(chunks):
+        start = time.perf_counter()
+        states, _ = trainer.run_chunks(states, keys, data.train, length=length)
+        jax.block_until_ready(states)
+        times.append((time.perf_counter() - start) / length)
+    return k / float(np.median(times))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--family", default="HalfCheetahVel", choices=sorted(DIMS))
+    parser.add_argument("--method", default="bati")
+    parser.add_argument("--scale", default="paper", choices=("quick", "paper"))
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 3, 8])
+    parser.add_argument("--length", type=int, default=20)
+    parser.add_argument("--chunks", type=int, default=3)
+    args = parser.parse_args()
+    data = random_data(args.family)
+    config = TrainConfig(family=args.family, method=args.method, scale=args.scale).resolved()
+    trainer = Trainer(config, data)
+    print(f"device: {describe_device()}; jax {jax.__version__}; {args.family} {args.method} {args.scale} "
+          f"({config.task_batch} x {config.batch_size}, IQL {config.rl_hidden_dims})")
+    print("| seeds k | ms per step (all k) | seed-steps / s | vs k = 1 |\n| --- | --- | --- | --- |")
+    base = None
+    for k in args.seeds:
+        rate = seed_steps_per_second(trainer, data, k, args.length, args.chunks)
+        base = base or rate
+        print(f"| {k} | {1e3 * k / rate:.1f} | {rate:.1f} | {rate / base:.2f}x |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
