@@ -51,6 +51,7 @@ def test_a_cell_identity_is_its_whole_config(tmp_path):
     (Grid(seeds=()), "seeds are empty"),
     (Grid(families=()), "families are empty"),
     (Grid(noises=(-1.0,)), "noise"),
+    (Grid(noises=(float("inf"),)), "noise eps=inf is outside"),
     (Grid(settings=("stepz=3",)), "unknown setting 'stepz'"),
     (Grid(settings=("seed=3",)), "seed cannot be set"),
     (Grid(settings=("steps",)), "not KEY=VALUE"),

@@ -98,7 +98,7 @@ class TaskFamily(abc.ABC):
         if noise is None:
             return self.default_noise
         noise = float(noise)
-        if not (0.0 <= noise <= self.max_noise) or math.isnan(noise):
+        if not (0.0 <= noise <= self.max_noise) or not math.isfinite(noise):
             upper = "inf" if math.isinf(self.max_noise) else f"{self.max_noise:g}"
             raise TaskError(f"{self.name}: noise eps={noise:g} is outside the allowed range [0, {upper}]")
         return noise
