@@ -15,8 +15,7 @@ import numpy as np
 
 from bati.data import ensure_family_data
 from bati.envs import get_family
-from bati.experts import load
-from bati.experts.card import expert_episodes
+from bati.evaluate import reference_returns
 from bati.io import atomic_write_json, atomic_write_text
 from bati.methods import METHODS
 from bati.report.curves import plot_learning_curves
@@ -37,12 +36,6 @@ class MainJobConfig:
     """Experiment directory (default: runs/<family>/<scale>)."""
 
 
-def oracle_return(family_name: str, test_tasks, noise: float, seed: int = 0) -> float:
-    """The experts' own mean return on the test tasks (the paper's "Oracle (Pre-IQL)")."""
-    expert = load(family_name)
-    return float(expert_episodes(expert, test_tasks, test_tasks, noise, seed=2000 + seed).returns.mean())
-
-
 def resolve_methods(methods: tuple[str, ...]) -> list[str]:
     """The methods to run, in order; `all` stands for every method. Unknown names are an error up front."""
     names = list(METHODS) if "all" in methods else list(dict.fromkeys(methods))
@@ -60,7 +53,7 @@ def run_main_job(config: MainJobConfig, show_progress: bool = True) -> dict:
     check_seeds(config.seeds)
     out = config.out_dir or Path("runs") / config.family / config.scale
     data = ensure_family_data(config.family, config.scale, 0, config.noise, config.data_root, progress=show_progress)
-    oracle = oracle_return(config.family, data.test_tasks, data.noise)
+    oracle = reference_returns(data)["expert"]  # the paper's "Oracle (Pre-IQL)"
 
     rows, run_dirs = [], {}
     for method in methods:

@@ -22,6 +22,7 @@ from bati.errors import BatiError
 from bati.io import atomic_write_text
 from bati.report.runs import RunResult, find_eval_files, load_runs
 from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval
+from bati.report.curves import save_figure
 from bati.report.tables import METHOD_LABELS
 
 # Methods that a probability of improvement is computed for (against every other method of the group).
@@ -411,11 +412,7 @@ def plot_group(group: Group, path: Path, title: str, metric: str = "return") -> 
     axes[1].legend(loc="best", fontsize="small")
     fig.suptitle(title, fontsize="medium")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    save_figure(fig, path, dpi=110)
     return True
 
 

@@ -37,8 +37,15 @@ def plot_learning_curves(run_dirs: dict[str, list[Path]], path: Path, title: str
     axes[1].legend(loc="lower right")
     fig.suptitle(title)
     fig.tight_layout()
+    save_figure(fig, path, dpi=120)
+
+
+def save_figure(fig, path: Path, dpi: int) -> None:
+    """Write a figure atomically (a temporary file, then a rename) and close it."""
+    import matplotlib.pyplot as plt
+
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=120)
+    fig.savefig(tmp, dpi=dpi)
     plt.close(fig)
     tmp.replace(path)
