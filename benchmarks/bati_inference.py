@@ -33,7 +33,7 @@ def main() -> None:
     method = BATI(spec)
     params = method.init(jax.random.PRNGKey(0))
     infer = jax.jit(method.infer)
-    print(f"| family | contexts K | C | N | ms per call |\n| --- | --- | --- | --- | --- |")
+    print("| family | contexts K | C | N | ms per call |\n| --- | --- | --- | --- | --- |")
     for k in (1, 20):
         c = args.context_length
         rng = np.random.default_rng(0)

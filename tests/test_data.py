@@ -374,8 +374,12 @@ def test_sample_contexts_are_windows_inside_one_episode():
     again = sampler(keys)
     assert np.array_equal(np.asarray(again["observations"]), obs)  # same keys, same contexts
     assert not np.array_equal(obs[0], obs[1])
-    with pytest.raises(ValueError, match="context length 11"):
-        sample_contexts(syn, keys[0], task_ids, length=11)
+    # longer than an episode: whole consecutive episodes from an episode's first step
+    long = np.asarray(jax.vmap(lambda k: sample_contexts(syn, k, task_ids, length=25))(keys)["observations"])[..., 1]
+    assert long.shape == (200, 5, 25) and np.all(long[..., 0] % 10 == 0) and np.all(np.diff(long, axis=-1) == 1)
+    assert set(np.unique(long[..., 0] // 10)) == {0}  # 3 episodes needed: only the first can start it
+    with pytest.raises(ValueError, match="context length 31"):
+        sample_contexts(syn, keys[0], task_ids, length=31)
 
 
 def test_sample_contexts_on_collected_data(small):
@@ -442,11 +446,20 @@ def tiny_copy(tiny_seed0, tmp_path):
     return path
 
 
+def rerecord_checksums(path):
+    """Make the manifest's checksums agree with the (edited) files: what a buggy collector would have
+    written, so that the shape checks below, not the integrity check, must catch the mismatch."""
+    manifest = json.loads((path / "manifest.json").read_text())
+    manifest["files"] = store.file_checksums(path, manifest["datasets"])
+    (path / "manifest.json").write_text(json.dumps(manifest))
+
+
 def test_shape_mismatch_in_an_episode(tiny_copy):
     file = tiny_copy / "p_test-05-v0" / "data" / "main_data.hdf5"
     with h5py.File(file, "a") as f:
         del f["episode_0/observations"]
         f["episode_0/observations"] = np.zeros((201, 3))
+    rerecord_checksums(tiny_copy)
     with pytest.raises(store.DatasetError) as info:
         load_family_data(FAMILY, root=tiny_copy.parents[1])
     message = str(info.value)
@@ -459,6 +472,7 @@ def test_space_mismatch_in_the_metadata(tiny_copy):
     meta["observation_space"] = json.dumps({"type": "Box", "dtype": "float64", "shape": [3],
                                             "low": [-2.0] * 3, "high": [2.0] * 3})
     file.write_text(json.dumps(meta))
+    rerecord_checksums(tiny_copy)
     with pytest.raises(store.DatasetError) as info:
         load_family_data(FAMILY, root=tiny_copy.parents[1], cache=False)
     assert str(file) in str(info.value) and "(3,)" in str(info.value) and "(2,)" in str(info.value)

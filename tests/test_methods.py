@@ -244,11 +244,35 @@ def test_dpt_learns_the_experts_action_from_the_context():
     np.testing.assert_array_equal(np.argmin(np.abs(actions[:, None] - 0.4 * THETAS[None]), axis=1), np.arange(4))
 
 
-def test_dpt_refuses_discrete_actions():
+def test_dpt_with_discrete_actions_learns_the_experts_choice_from_the_context():
+    """Discrete actions (KuhnPoker): a categorical head on one-hot actions; the toy expert picks action 1
+    in the tasks with theta > 0, action 0 otherwise, and only the context's rewards tell them apart."""
     import dataclasses
 
-    with pytest.raises(ValueError, match="continuous actions"):
-        make_method("dpt", dataclasses.replace(SPEC, discrete_actions=True))
+    method = make_method("dpt", dataclasses.replace(SPEC, discrete_actions=True, action_dim=2))
+
+    def one_hot(transitions):
+        index = (np.asarray(transitions["actions"])[..., 0] > 0).astype(int)
+        return {**transitions, "actions": jax.nn.one_hot(index, 2)}
+
+    params = method.init(jax.random.PRNGKey(0))
+    optimizer = optax.adam(3e-3)
+    opt_state = optimizer.init(params)
+    grad = jax.jit(jax.value_and_grad(method.loss, has_aux=True))
+    expert = jax.nn.one_hot((THETAS > 0).astype(int), 2)
+    losses = []
+    for i in range(150):
+        batch = one_hot(toy_transitions(np.arange(4), n=32, seed=100 + i))
+        batch["context"] = one_hot(toy_transitions(np.arange(4), n=32, seed=10_000 + i))
+        batch["expert_actions"] = jnp.broadcast_to(expert[:, None], (4, 32, 2))
+        (loss, _), grads = grad(params, batch, jax.random.PRNGKey(i))
+        updates, opt_state = optimizer.update(grads, opt_state)
+        params = optax.apply_updates(params, updates)
+        losses.append(float(loss))
+    assert np.mean(losses[-20:]) < 0.1 < 0.4 < losses[0]  # from about log 2 (a coin) to confident
+    z = method.infer(params, one_hot(toy_transitions(np.arange(4), n=32, seed=7)), jax.random.PRNGKey(0))
+    actions = np.asarray(method.act(params, jnp.zeros((4, 2)), z))
+    np.testing.assert_array_equal(actions, np.asarray(expert))  # one-hot modes, each task's own choice
 
 
 def test_csro_club_term_ignores_a_common_shift_of_the_latents():

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal, Union
@@ -14,6 +17,8 @@ from rich.markdown import Markdown
 from rich.markup import escape
 from rich.table import Table
 
+from bati.envs.base import TaskSplit
+from bati.errors import BatiWarning
 from bati.experiments.sweep import Grid
 
 console = Console()
@@ -29,6 +34,10 @@ class SweepFailed(Exception):
     """Some cells of a sweep failed (the others finished): exit code 1."""
 
 
+class CollectionDamaged(Exception):
+    """`bati data verify` found a damaged collection: exit code 1."""
+
+
 @dataclass
 class Envs:
     """List the task families with their task spaces; with --family and --task, try one episode."""
@@ -41,10 +50,20 @@ class Envs:
     """Per-step noise eps (default: the family's)."""
 
     def run(self) -> None:
-        from bati.envs import FAMILY_NAMES, get_family
+        from bati.envs import FAMILY_NAMES, FamilyUnavailable, get_family
 
+        if self.task is not None and not self.family:
+            raise UserError("--task needs --family: a task is a parameter of one family "
+                            "(e.g. --family PointGoal --task 0.6 0.8)")
         names = [self.family] if self.family else list(FAMILY_NAMES)
-        families = [get_family(name) for name in names]
+        families, unavailable = [], []
+        for name in names:  # a family whose optional extra is missing is listed with its install hint
+            try:
+                families.append(get_family(name))
+            except FamilyUnavailable as err:
+                if self.family:
+                    raise
+                unavailable.append((name, str(err)))
         if self.noise is not None:
             for family in families:
                 family.validate_noise(self.noise)
@@ -55,7 +74,11 @@ class Envs:
             table.add_column(column)
         for f in families:
             table.add_row(f.name, f.env_id, f.kind, escape(f.task_space), f"{f.default_noise:g}")
+        for name, _ in unavailable:
+            table.add_row(name, f"bati/{name}-v0", "-", "not installed (below)", "-")
         console.print(table)
+        for _, why in unavailable:
+            console.print(escape(why), soft_wrap=True)
         if self.task is None:
             return
         family = families[0]
@@ -145,12 +168,14 @@ class DataCollect:
     """Where the family's expert is loaded from (default: the package zoo)."""
     workers: int | None = None
     """Worker processes (default: all cores)"""
+    tasks: Annotated[TaskSplit, tyro.conf.OmitArgPrefixes] = TaskSplit()
+    """Which tasks train and test: counts (--n-train, --n-test) or parameter ranges (--train-range LOW HIGH)."""
 
     def run(self) -> None:
         from bati.data.collect import collect
 
         result = collect(self.family, self.scale, self.seed, self.noise, self.root, zoo_dir=self.zoo_dir,
-                         progress=console.is_terminal, workers=self.workers)
+                         progress=console.is_terminal, workers=self.workers, tasks=self.tasks)
         m = result.manifest
         how = "already collected" if result.cached else f"collected in {result.wall_time_s:.1f} s"
         console.print(
@@ -171,6 +196,8 @@ class DataInfo:
     seed: int = 0
     noise: float | None = None
     root: Path = Path("data")
+    tasks: Annotated[TaskSplit, tyro.conf.OmitArgPrefixes] = TaskSplit()
+    """The collection's task split (as given to `bati data collect`)."""
 
     def run(self) -> None:
         from bati.data import store
@@ -178,8 +205,11 @@ class DataInfo:
 
         family = get_family(self.family)
         noise = family.validate_noise(self.noise)
-        path = store.collection_dir(self.root, self.family, self.scale, self.seed, noise)
-        m = store.read_manifest(path, family, self.scale, self.seed, noise, self.root)
+        tasks = self.tasks.checked(family)
+        path = store.collection_dir(self.root, self.family, self.scale, self.seed, noise, tasks)
+        m = store.read_manifest(path, family, self.scale, self.seed, noise, self.root, tasks)
+        # a truncated or missing file is an error here too (sizes: cheap; `bati data verify` reads every byte)
+        store.require_intact(path, m, store.collect_command(family, self.scale, self.seed, noise, self.root, tasks))
         table = Table(title=f"{path} (commit {m['commit']}, {m['transitions']:,} transitions)")
         for column in ("test task", "task", "p_test collector (most different)",
                        "p_train collector (most similar)"):
@@ -189,13 +219,61 @@ class DataInfo:
             table.add_row(str(j), escape(str(task)), f"{d}: {escape(str(m['train_tasks'][d]))}",
                           f"{s}: {escape(str(m['train_tasks'][s]))}")
         console.print(table)
+        if store.has_checksums(m):
+            console.print(f"{len(m['files'])} dataset files, each of its recorded size; `bati data verify` "
+                          "compares their sha256", soft_wrap=True)
+        else:
+            console.print(f"no checksums (collected before format {store.CHECKSUM_FORMAT}): files not checked",
+                          soft_wrap=True)
+
+
+@dataclass
+class DataVerify:
+    """Recompute the sha256 of every dataset file of the collections under --root; name edited, truncated or
+    missing files (exit code 1 when a collection is damaged)."""
+
+    family: str | None = None
+    """Only this family's collections (default: every collection under --root)."""
+    scale: Literal["quick", "paper"] | None = None
+    """Only collections of this scale (default: any)."""
+    seed: int | None = None
+    """Only collections of this seed (default: any)."""
+    noise: float | None = None
+    """Only collections of this eps (default: any)."""
+    root: Path = Path("data")
+
+    def run(self) -> None:
+        from bati.data import store
+        from bati.envs import get_family
+        from bati.io import check_directory
+
+        check_directory(self.root, "the data root", writable=False)
+        if self.family:
+            get_family(self.family)  # an unknown family is an error, not "nothing found"
+        if not self.root.is_dir():
+            raise store.DatasetNotFoundError(f"no data root {self.root}: nothing to verify")
+        paths = store.find_collections(self.root, self.family, self.scale, self.seed, self.noise)
+        if not paths:
+            given = {k: getattr(self, k) for k in ("family", "scale", "seed", "noise") if getattr(self, k) is not None}
+            which = " with " + ", ".join(f"{k}={v}" for k, v in given.items()) if given else ""
+            raise store.DatasetNotFoundError(f"no collection under {self.root}{which}")
+        damaged = []
+        for path in paths:
+            status, details = store.verify_collection(path)
+            console.print(f"{status}: {escape(str(path))}" + (f": {escape('; '.join(details))}" if details else ""),
+                          soft_wrap=True)
+            if status == "damaged":
+                damaged.append(path)
+        if damaged:
+            raise CollectionDamaged(f"{len(damaged)} of {len(paths)} collection(s) damaged ("
+                                    + ", ".join(map(str, damaged)) + "); delete them and re-run `bati data collect`")
 
 
 @dataclass
 class Data:
     """Offline datasets and context data (Minari)."""
 
-    command: group(collect=DataCollect, info=DataInfo)
+    command: group(collect=DataCollect, info=DataInfo, verify=DataVerify)
 
     def run(self) -> None:
         self.command.run()
@@ -217,17 +295,23 @@ class Train:
     """Run directory (default runs/<family>/<scale>/<method>-seed<seed>); re-running resumes. With --seeds:
     the parent of the runs' directories <method>-seed<s> (default runs/<family>/<scale>)."""
     data_root: Path = Path("data")
-    seeds: tuple[int, ...] = ()
+    data_seed: int = 0
+    """Seed of the collection to train on (its `bati data collect --seed`)."""
+    seeds: tuple[int, ...] | None = None
     """Train several seeds as one program vmapped over them (instead of --seed)."""
 
     def run(self) -> None:
         from bati.train import TrainConfig, train_seeds
 
+        if self.seeds is not None and not self.seeds:
+            raise UserError("--seeds needs at least one seed (e.g. --seeds 0 1 2), or leave it out for --seed")
         config = TrainConfig(family=self.family, method=self.method, seed=self.seed, scale=self.scale,
                              steps=self.steps, noise=self.noise, out_dir=None if self.seeds else self.out_dir,
-                             data_root=self.data_root)
+                             data_root=self.data_root, data_seed=self.data_seed)
         runs_dir = (self.out_dir or Path("runs") / self.family / self.scale) if self.seeds else None
-        for summary in train_seeds(config, self.seeds or (self.seed,), runs_dir=runs_dir):
+        # progress bars only on a terminal: a log file (or a test) gets the result lines, not bar redraws
+        for summary in train_seeds(config, self.seeds or (self.seed,), runs_dir=runs_dir,
+                                   show_progress=console.is_terminal):
             console.print(
                 f"{self.method} on {self.family}, seed {summary['seed']}: return with p_train contexts "
                 f"{summary['p_train_return']:.1f}, with p_test contexts {summary['p_test_return']:.1f} "
@@ -307,6 +391,81 @@ class Sweep:
 
 
 @dataclass
+class Experiment:
+    """Run one of the paper's experiments (`bati experiment list` shows them) and write its report."""
+
+    name: tyro.conf.Positional[str]
+    """The experiment (main, noise, context-length, ...), or `list`."""
+    scale: Literal["quick", "paper"] = "quick"
+    seeds: tuple[int, ...] | None = None
+    """Training seeds (default: quick 0; paper 0 1 2 3 4)."""
+    methods: tuple[str, ...] = ()
+    """Keep only these of the experiment's methods (default: all of them)."""
+    families: tuple[str, ...] = ()
+    """Keep only these of the experiment's families (default: all of them)."""
+    settings: tuple[str, ...] = ()
+    """KEY=VALUE TrainConfig settings for every cell, e.g. `steps=12000` (not those the experiment sets)."""
+    out_dir: Path | None = None
+    """Results directory shared by the experiments (default: results/<scale>/experiments); the report goes
+    to OUT_DIR/<name>/."""
+    data_root: Path = Path("data")
+    workers: int = 1
+    """Jobs at a time (local: processes; several may share one GPU)."""
+    backend: Literal["local", "ray"] = "local"
+    address: str | None = None
+    """Ray cluster address (backend ray; default: a local Ray)."""
+
+    def run(self) -> None:
+        from bati.experiments.specs import SPECS, default_out_dir, describe, get_spec, plan_experiment, run_experiment
+        from bati.report.experiment import experiment_report
+
+        if self.name == "list":
+            table = Table(title="bati experiments")
+            table.add_column("name", no_wrap=True)
+            for column in ("paper", "cells (quick)", "cells (paper)", "probes (quick)", "what"):
+                table.add_column(column)
+            for spec in SPECS.values():
+                quick, paper = describe(spec, "quick"), describe(spec, "paper")
+                table.add_row(spec.name, quick["paper"], str(quick["cells"]), str(paper["cells"]),
+                              str(quick["probes"]), escape(spec.title))
+            console.print(table)
+            return
+        spec = get_spec(self.name)
+        out = self.out_dir or default_out_dir(self.scale)
+        plan = plan_experiment(spec, self.scale, out, seeds=self.seeds, settings=self.settings, methods=self.methods,
+                               families=self.families, data_root=self.data_root)
+        result = run_experiment(plan, out, data_root=self.data_root, workers=self.workers, backend=self.backend,
+                                address=self.address, show_progress=console.is_terminal,
+                                on_probe=lambda label: console.print(f"probe {label}") if console.is_terminal else None)
+        report = experiment_report(plan, out / spec.name, command=self.command_line())
+        sweep = result.sweep
+        counts = {s: sweep.count(s) for s in ("done", "skipped", "failed")}
+        console.print(Markdown(report["markdown"]))
+        console.print(f"experiment {spec.name}: {counts['done']} cell(s) run, {counts['skipped']} already done, "
+                      f"{counts['failed']} failed, {result.probes_done} probe(s), in {result.wall_time_s / 60:.1f} min; "
+                      f"report in {out / spec.name}/", soft_wrap=True)
+        for label, error in {**sweep.errors, **result.probe_errors}.items():
+            error_console.print(f"[red]failed[/] {label}: {escape(error)}", soft_wrap=True)
+        if counts["failed"] or result.probe_errors:
+            raise SweepFailed(f"{counts['failed']} cell(s) and {len(result.probe_errors)} probe(s) failed; rerun the "
+                              "same command to retry them")
+
+    def command_line(self) -> str:
+        """The command that reproduces this experiment (options that differ from the defaults)."""
+        parts = ["bati experiment", self.name, "--scale", self.scale]
+        for name in ("seeds", "methods", "families", "settings"):
+            value = getattr(self, name)
+            if value:
+                parts += [f"--{name}", *map(str, value)]
+        for name, default in (("out_dir", None), ("data_root", Path("data")), ("workers", 1), ("backend", "local"),
+                              ("address", None)):
+            value = getattr(self, name)
+            if value != default:
+                parts += [f"--{name.replace('_', '-')}", str(value)]
+        return " ".join(parts)
+
+
+@dataclass
 class Report:
     """Tables (Markdown + CSV) and learning curves (PNG) from the eval.json files under a directory."""
 
@@ -338,25 +497,106 @@ class Report:
 
 
 COMMANDS = {"envs": Envs, "experts": Experts, "data": Data, "train": Train, "run": Run, "sweep": Sweep,
-            "likelihood": Likelihood, "report": Report}
+            "experiment": Experiment, "likelihood": Likelihood, "report": Report}
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command. Every failure a user can cause or meet (bad input, a missing, damaged or locked
+    file, an OS error such as a full disk) is one line on stderr, exit code 2; a sweep with failed cells
+    or a damaged collection found by `bati data verify`: exit code 1."""
     from bati.envs import TaskError
-    from bati.errors import BatiError
+    from bati.errors import BatiError, describe_os_error
 
-    command = tyro.extras.subcommand_cli_from_dict(
-        COMMANDS, args=argv, prog="bati", config=(tyro.conf.OmitSubcommandPrefixes,)
-    )
     try:
-        command.run()
-    except SweepFailed as err:
-        error_console.print(f"[bold red]error:[/] {escape(str(err))}")
-        return 1
-    except (UserError, BatiError, TaskError, FileNotFoundError, ValueError) as err:
-        error_console.print(f"[bold red]error:[/] {escape(str(err))}")
-        return 2
+        command = _parse(argv)
+    except SystemExit as exit_:
+        return exit_.code if isinstance(exit_.code, int) else 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", BatiWarning)
+        warnings.showwarning = _show_warning(warnings.showwarning)
+        try:
+            command.run()
+        except (SweepFailed, CollectionDamaged) as err:
+            return _error(str(err), 1)
+        except OSError as err:  # before ValueError: FileNotFoundError, PermissionError, disk full, ...
+            return _error(describe_os_error(err), 2)
+        except (UserError, BatiError, TaskError, ValueError) as err:
+            return _error(str(err), 2)
+        except KeyboardInterrupt:
+            return _error("interrupted; run the same command again to resume", 130)
     return 0
+
+
+def _error(message: str, code: int) -> int:
+    error_console.print(f"[bold red]error:[/] {escape(message)}")
+    return code
+
+
+def _show_warning(default):
+    """warnings.showwarning that prints bati's warnings (a torn log line dropped, ...) as one line."""
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, BatiWarning):
+            error_console.print(f"[yellow]warning:[/] {escape(str(message))}")
+        else:
+            default(message, category, filename, lineno, file, line)
+
+    return show
+
+
+def _parse(argv: list[str] | None):
+    """The command tyro parses from `argv`; a usage error (unknown option, a value of the wrong type,
+    a missing value) is printed as one line instead of tyro's panel, then SystemExit(2) as tyro does."""
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(captured):
+            command = tyro.extras.subcommand_cli_from_dict(
+                COMMANDS, args=argv, prog="bati", config=(tyro.conf.OmitSubcommandPrefixes,)
+            )
+    except SystemExit as exit_:
+        if exit_.code not in (0, None):
+            _error(usage_error_line(captured.getvalue()), 2)
+            raise SystemExit(2) from None
+        sys.stderr.write(captured.getvalue())
+        raise
+    sys.stderr.write(captured.getvalue())  # whatever else tyro printed (warnings)
+    return command
+
+
+def usage_error_line(panel: str) -> str:
+    """tyro's usage-error panel in one line: its message, its first suggestion, where the help is."""
+    rows = [row.strip().strip("\u2502\u256d\u256e\u2570\u256f").strip() for row in panel.splitlines()]
+    sections: list[list[str]] = [[]]
+    for row in rows[1:]:  # after the title, rules (----) separate the message and the hints
+        if row and set(row) <= set("-\u2500\u256d\u256e\u2570\u256f "):
+            sections.append([])
+        else:
+            sections[-1].append(row)
+    body = next((section for section in sections if any(section)), rows)
+    message = " ".join(_first_paragraph(body))
+    if not message:
+        return "invalid arguments (see `bati --help`)"
+    suggestion = _row_after(rows, "Perhaps you meant")
+    if suggestion:
+        message += f"; perhaps you meant {suggestion.split()[0]}"
+    helps = [row.split(" run ", 1)[-1].split(" see ", 1)[-1] for row in rows if row.startswith("For full helptext")]
+    return message + (f" (see `{helps[0]}`)" if helps else "")
+
+
+def _row_after(rows: list[str], prefix: str) -> str:
+    """The first non-empty row after the row that starts with `prefix` ("" if none)."""
+    starts = [i for i, row in enumerate(rows) if row.startswith(prefix)]
+    return next((row for row in rows[starts[0] + 1:] if row), "") if starts else ""
+
+
+def _first_paragraph(rows: list[str]) -> list[str]:
+    out = []
+    for row in rows:
+        if not row and out:
+            break
+        if row:
+            out.append(row)
+    return out
 
 
 if __name__ == "__main__":

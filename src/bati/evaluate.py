@@ -5,6 +5,11 @@ infer z from the context alone, then roll the policy out for one episode in the 
 tasks step in lockstep with one batched policy call per step. We also report the task-inference
 error: the App. C.2 distance between the true test task and the training task whose reference
 latent (inferred from that task's own training data) is nearest to the inferred z.
+A family that computes a policy's expected return exactly (`TaskFamily.exact_returns`; KuhnPoker:
+per hand, enumerating the deals) is evaluated that way instead of by a rollout.
+
+With `context_mix=r` the evaluator instead draws interpolated contexts (Sec. 5.8): N (1 - r)
+transitions from p_train followed by N r from p_test, one source called "mixed".
 """
 
 from __future__ import annotations
@@ -30,18 +35,28 @@ class EvalResult:
 
     def summary(self) -> dict:
         out = {}
-        for s in SOURCES:
+        for s in self.returns:
             out[f"{s}_return"] = float(self.returns[s].mean())
             out[f"{s}_inference_error"] = float(self.inference_errors[s].mean())
             out[f"{s}_task_returns"] = self.returns[s].round(3).tolist()
         return out
 
 
+def mixed_context_lengths(length: int, mix: float) -> tuple[int, int]:
+    """(p_train, p_test) transitions of an interpolated context of `length` with a p_test ratio `mix`."""
+    n_test = round(length * mix)
+    return length - n_test, n_test
+
+
 class Evaluator:
-    def __init__(self, method, iql, data: FamilyData, context_length: int):
+    def __init__(self, method, iql, data: FamilyData, context_length: int, context_mix: float | None = None):
         self.method, self.iql, self.data = method, iql, data
         self.family = get_family(data.family)
         self.context_length = context_length
+        if context_mix is not None and not 0.0 <= context_mix <= 1.0:
+            raise ValueError(f"context_mix must be in [0, 1] (the share of p_test transitions), got {context_mix!r}")
+        self.context_mix = context_mix
+        self.sources = SOURCES if context_mix is None else ("mixed",)
         self.infer = jax.jit(self._infer)
         # The policy: IQL's actor on z, or the method itself (DPT); vmapped over runs (seeds).
         act = method.act if method.acts_itself else iql.act
@@ -50,25 +65,38 @@ class Evaluator:
         train, test = data.train_tasks, data.test_tasks
         self.distances = self.family.distance_matrix(test, train)  # (n_test, n_train)
 
-    def _infer(self, params, task_data, task_arrays, key):
-        k_context, k_infer = jax.random.split(key)
-        task_ids = jnp.arange(task_data.rewards.shape[0])
-        contexts = sample_contexts(task_data, k_context, task_ids, self.context_length)
-        contexts["task_arrays"] = task_arrays  # the true tasks: only the Oracle reads them
-        return self.method.infer(params, contexts, k_infer)
+    def contexts(self, source: str, key: jax.Array) -> dict:
+        """One context of `context_length` transitions per test task from `source` ("p_test",
+        "p_train", or "mixed": the p_train part first, then the p_test part)."""
+        if source != "mixed":
+            task_data = getattr(self.data, source)
+            return sample_contexts(task_data, key, jnp.arange(task_data.rewards.shape[0]), self.context_length)
+        lengths = mixed_context_lengths(self.context_length, self.context_mix)
+        parts = [sample_contexts(getattr(self.data, s), k, jnp.arange(self.data.p_test.rewards.shape[0]), n)
+                 for s, n, k in zip(("p_train", "p_test"), lengths, jax.random.split(key)) if n > 0]
+        return {name: jnp.concatenate([p[name] for p in parts], axis=1) for name in parts[0]}
+
+    def _infer(self, params, contexts, task_arrays, key):
+        contexts = {**contexts, "task_arrays": task_arrays}  # the true tasks: only the Oracle reads them
+        return self.method.infer(params, contexts, key)
 
     def infer_latents(self, method_params, key) -> dict[str, jax.Array]:
-        """The latent inferred from a p_test and a p_train context of each test task, and the reference
-        latent of each training task (its table entry, or inferred from its own training data)."""
-        keys = jax.random.split(key, len(SOURCES) + 1)
+        """The latent inferred from a context of each test task per source, and the reference latent of
+        each training task (its table entry, or inferred from its own training data)."""
+        keys = jax.random.split(key, len(self.sources) + 1)
         test_arrays = jnp.asarray(self.data.test_task_arrays, jnp.float32)
-        latents = {s: self._infer(method_params, getattr(self.data, s), test_arrays, k)
-                   for s, k in zip(SOURCES, keys)}
+        latents = {}
+        for source, k in zip(self.sources, keys):
+            k_context, k_infer = jax.random.split(k)
+            latents[source] = self._infer(method_params, self.contexts(source, k_context), test_arrays, k_infer)
         if hasattr(self.method, "task_latents"):  # methods with a latent per training task (BATI)
             latents["reference"] = self.method.task_latents(method_params)
         else:
             train_arrays = jnp.asarray(self.data.train_task_arrays, jnp.float32)
-            latents["reference"] = self._infer(method_params, self.data.train, train_arrays, keys[-1])
+            k_context, k_infer = jax.random.split(keys[-1])
+            train = self.data.train
+            contexts = sample_contexts(train, k_context, jnp.arange(train.rewards.shape[0]), self.context_length)
+            latents["reference"] = self._infer(method_params, contexts, train_arrays, k_infer)
         return latents
 
     def evaluate(self, state, key, seed: int) -> EvalResult:
@@ -86,21 +114,26 @@ class Evaluator:
         latents = jax.device_get(self.latents_of_runs(states.method, keys))
         policy_params = states.method if self.method.acts_itself else states.iql.actor
         returns = {}
-        for source in SOURCES:
+        for source in self.sources:
             z = jnp.asarray(latents[source])  # (k, n, latent_dim)
 
             def act(obs, _, z=z):
                 obs = jnp.asarray(obs, jnp.float32).reshape(k, n, -1)
                 return np.asarray(self.act(policy_params, obs, z)).reshape(k * n, -1)
 
-            episodes = rollout(self.family, list(self.data.test_tasks) * k, act, noise=self.data.noise,
+            tasks = list(self.data.test_tasks) * k
+            exact = self.family.exact_returns(lambda obs, act=act: act(obs, 0), tasks, self.data.noise)
+            if exact is not None:  # the expected return, computed (KuhnPoker: per hand, over the deals)
+                returns[source] = np.asarray(exact).reshape(k, n)
+                continue
+            episodes = rollout(self.family, tasks, act, noise=self.data.noise,
                                seed=[s + i for s in seeds for i in range(n)])
             returns[source] = episodes.returns.reshape(k, n)
         results = []
         for j in range(k):
             run_latents = {name: np.asarray(value[j]) for name, value in latents.items()}
-            errors = {s: self.inference_error(run_latents[s], run_latents["reference"]) for s in SOURCES}
-            results.append(EvalResult({s: returns[s][j] for s in SOURCES}, errors, run_latents))
+            errors = {s: self.inference_error(run_latents[s], run_latents["reference"]) for s in self.sources}
+            results.append(EvalResult({s: returns[s][j] for s in self.sources}, errors, run_latents))
         return results
 
     def inference_error(self, z: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -119,6 +152,14 @@ def reference_returns(data: FamilyData, seed: int = 0) -> dict[str, float]:
     from bati.experts.card import expert_episodes
 
     family = get_family(data.family)
+    exact_random = family.exact_returns(None, data.test_tasks, data.noise)
+    if exact_random is not None:  # computed expectations (KuhnPoker: per hand), as `Evaluator` reports them
+        expert = load(data.family)
+        arrays = np.stack([family.task_to_array(t) for t in data.test_tasks])
+        key = jax.random.PRNGKey(seed)
+        exact_expert = family.exact_returns(lambda obs: expert.act_from_arrays(obs, arrays, True, key),
+                                            data.test_tasks, data.noise)
+        return {"random": float(np.mean(exact_random)), "expert": float(np.mean(exact_expert))}
     rng = np.random.default_rng(seed)
     probe = family.make_env(data.test_tasks[0], data.noise)
     low, high = probe.action_space.low, probe.action_space.high

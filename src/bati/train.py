@@ -8,12 +8,13 @@ A run directory holds config.json, metrics.jsonl, eval.jsonl, checkpoint.msgpack
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import platform
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
@@ -26,16 +27,22 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 
 from bati.data import FamilyData, ensure_family_data, sample_batch, sample_contexts
 from bati.data.batch import TRANSITION_FIELDS
+from bati.envs import TaskSplit
 from bati.errors import BatiError
 from bati.evaluate import Evaluator, reference_returns
 from bati.experts import load as load_expert
 from bati.io import (
+    LOCK_NAME,
     append_jsonl,
     atomic_write_bytes,
     atomic_write_json,
     atomic_write_text,
+    check_directory,
     check_run_config,
     git_commit,
+    hold_lock,
+    read_jsonl,
+    read_jsonl_lines,
 )
 from bati.methods import MethodSpec, make_method
 from bati.rl.iql import IQL, IQLConfig, IQLState
@@ -57,11 +64,13 @@ class TrainConfig:
     scale: Literal["quick", "paper"] = "quick"
     steps: int | None = None
     """Gradient steps (default: paper 100k, quick 3k)."""
-    task_batch: int = 16
+    task_batch: int | None = None
+    """Tasks in a batch (default: Table 3's 16, or all training tasks when there are fewer)."""
     batch_size: int | None = None
     """Transitions per task in a batch (default: paper 256, quick 64)."""
-    context_length: int = 200
-    """Transitions in a training context (encoder methods) and, by default, in an evaluation context."""
+    context_length: int | None = None
+    """Transitions in a training context (encoder methods) and, by default, in an evaluation context
+    (default: the family's, one episode = 200; KuhnPoker 20 = 10 hands)."""
     eval_context_length: int | None = None
     """Transitions in an evaluation context (default: context_length; Table 1 evaluates other lengths)."""
     eval_every: int | None = None
@@ -83,6 +92,34 @@ class TrainConfig:
     its own --data-root)."""
     context_episodes: int | None = None
     """Episodes per test task in the context data (default: the scale's)."""
+    n_train_tasks: int = 20
+    """Training tasks (App. D.3 splits AntDir's 40 tasks 10/30 and 30/10)."""
+    n_test_tasks: int = 20
+    train_task_range: tuple[float, float] | None = None
+    """Draw the training tasks' parameter uniformly from [LOW, HIGH) (Sec. 5.7: AntDir 0 3.14159)."""
+    test_task_range: tuple[float, float] | None = None
+    """Draw the test tasks' parameter uniformly from [LOW, HIGH) (Sec. 5.7: AntDir 3.14159 6.28319)."""
+
+    @classmethod
+    def from_record(cls, record: dict) -> TrainConfig:
+        """The config a run directory's config.json records (lists back to tuples; `runtime` and keys
+        this version does not know are ignored)."""
+        names = {f.name for f in fields(cls)}
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in record.items() if k in names}
+        if isinstance(values.get("iql"), dict):
+            iql_names = {f.name for f in fields(IQLConfig)}
+            values["iql"] = IQLConfig(**{k: tuple(v) if isinstance(v, list) else v
+                                         for k, v in values["iql"].items() if k in iql_names})
+        for name in ("data_root", "out_dir"):
+            if values.get(name) is not None:
+                values[name] = Path(values[name])
+        return cls(**values)
+
+    def task_split(self) -> TaskSplit:
+        """The training / test task split of the run's data."""
+        return TaskSplit(self.n_train_tasks, self.n_test_tasks,
+                         None if self.train_task_range is None else tuple(self.train_task_range),
+                         None if self.test_task_range is None else tuple(self.test_task_range))
 
     def resolved(self) -> TrainConfig:
         """Every default filled in (an explicit default and None give the same config) and every value
@@ -111,19 +148,29 @@ class TrainConfig:
         tenth = max(self.log_every, (steps // 10) // self.log_every * self.log_every)
         eval_every = pick(self.eval_every, tenth)
         out = pick(self.out_dir, Path("runs") / self.family / self.scale / f"{self.method}-seed{self.seed}")
+        split = self.task_split().checked(family)  # TaskError for a bad count or range
+        context_length = pick(self.context_length, family.default_context_length)
         resolved = replace(
             self,
             noise=family.validate_noise(self.noise),
+            train_task_range=split.train_range,
+            test_task_range=split.test_range,
             steps=steps,
             batch_size=pick(self.batch_size, 64 if quick else 256),
+            task_batch=pick(self.task_batch, min(16, split.n_train)),
             eval_every=eval_every,
-            eval_context_length=pick(self.eval_context_length, self.context_length),
+            context_length=context_length,
+            eval_context_length=pick(self.eval_context_length, context_length),
             checkpoint_every=pick(self.checkpoint_every, eval_every),
             out_dir=Path(out),
             data_root=Path(self.data_root),
             rl_hidden_dims=tuple(pick(self.rl_hidden_dims, (128, 128) if quick else (256, 256))),
         )
-        resolved.iql = replace(self.iql, hidden_dims=resolved.rl_hidden_dims, learning_rate=self.learning_rate)
+        resolved.iql = replace(self.iql, hidden_dims=resolved.rl_hidden_dims, learning_rate=self.learning_rate,
+                               discrete=family.discrete_actions)
+        if resolved.task_batch > split.n_train:
+            raise ValueError(f"task_batch ({resolved.task_batch}) must be at most n_train_tasks ({split.n_train}): "
+                             "a batch draws distinct training tasks")
         if resolved.eval_every % self.log_every or resolved.checkpoint_every % self.log_every:
             raise ValueError(f"eval_every ({resolved.eval_every}) and checkpoint_every ({resolved.checkpoint_every}) "
                              f"must be multiples of log_every ({self.log_every})")
@@ -148,7 +195,7 @@ class Trainer:
         family_spec = MethodSpec(
             obs_dim=data.obs_dim, action_dim=data.action_dim, task_dim=data.task_dim,
             n_train_tasks=len(data.train_tasks), latent_dim=LATENT_DIMS.get(config.family, 5),
-            encoder_dims=dims, decoder_dims=dims, family=config.family,
+            encoder_dims=dims, decoder_dims=dims, family=config.family, discrete_actions=config.iql.discrete,
         )
         self.method = make_method(config.method, family_spec)
         self.spec = self.method.spec  # a method may change the latent (Oracle: the task array; DPT: its width)
@@ -230,12 +277,47 @@ def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool
         raise ValueError("several seeds need one directory each: give runs_dir (the parent), not out_dir")
     configs = [replace(config, seed=s, out_dir=(runs_dir / f"{config.method}-seed{s}") if runs_dir else
                        config.out_dir).resolved() for s in seeds]
-    config = configs[0]
-    for c in configs:  # claim the run directories (or refuse them) before any work
-        _check_run_dir(c.out_dir, c)
+    _check_paths(configs)
+    with contextlib.ExitStack() as claimed:
+        for c in configs:  # claim the run directories (or refuse them) before any work
+            claimed.enter_context(hold_lock(c.out_dir / LOCK_NAME, f"the run directory {c.out_dir}"))
+            claimed.enter_context(_forgotten_unless_started(c.out_dir))
+            _check_run_dir(c.out_dir, c)
+        return _train_claimed(configs, show_progress)
+
+
+def _check_paths(configs: list[TrainConfig]) -> None:
+    """Refuse run directories and a data root that are files (or unwritable where we must write) with
+    one line, before anything is written anywhere."""
+    from bati.data import store
+
+    for c in configs:
+        check_directory(c.out_dir, "the run directory")
+    c = configs[0]
+    collection = store.collection_dir(c.data_root, c.family, c.scale, c.data_seed, c.noise, c.task_split())
+    check_directory(c.data_root, "the data root", writable=not (collection / store.MANIFEST).is_file())
+
+
+@contextlib.contextmanager
+def _forgotten_unless_started(out: Path):
+    """A run directory this call creates is removed again if it fails before its first record (e.g. no
+    data, Ctrl-C while collecting): the next attempt may then use other settings without being refused."""
+    fresh = not (out / "config.json").exists()
+    try:
+        yield
+    except BaseException:
+        left = {p.name for p in out.iterdir()} if out.is_dir() else set()
+        if fresh and left <= {"config.json", LOCK_NAME}:
+            (out / "config.json").unlink(missing_ok=True)
+        raise
+
+
+def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict]:
+    """train_seeds once its run directories are checked, claimed and locked."""
+    config, seeds = configs[0], [c.seed for c in configs]
     data = ensure_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
                               n_episodes=config.episodes_per_task, n_context_episodes=config.context_episodes,
-                              progress=show_progress)
+                              progress=show_progress, tasks=config.task_split())
     trainer = Trainer(config, data)
     evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length)
     runs = [_SeedRun.open(c, trainer) for c in configs]
@@ -347,8 +429,10 @@ def describe_device() -> str:
 
 def summarize_run(out: Path, last: int = 5) -> dict:
     """The paper's number: mean of the last `last` evaluations, per context distribution."""
-    evals = [json.loads(line) for line in (out / "eval.jsonl").read_text().splitlines()]
-    config = json.loads((out / "config.json").read_text())
+    evals = read_jsonl(out / "eval.jsonl", require=("step",))
+    if not evals:
+        raise ValueError(f"{out / 'eval.jsonl'} holds no evaluation; resume the run to redo them")
+    config = read_run_config(out)
     tail = evals[-last:]
     summary = {"family": config["family"], "method": config["method"], "seed": config["seed"],
                "scale": config["scale"], "steps": evals[-1]["step"], "evaluations_averaged": len(tail)}
@@ -364,6 +448,17 @@ def summarize_run(out: Path, last: int = 5) -> dict:
 
 # Where a run lives is not what it is: these fields may differ when a run directory is moved or resumed.
 NOT_IDENTITY = ("out_dir", "data_root")
+# Fields added to TrainConfig after runs were recorded: a saved config without one had this value.
+LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": None, "test_task_range": None}
+
+
+def differing_settings(saved: dict, current: dict, keys) -> list[str]:
+    """The keys whose saved and current values differ (a key added later and absent from the saved
+    config counts as its old value, LATER_FIELDS)."""
+    def old(k):
+        return saved[k] if k in saved else LATER_FIELDS.get(k, saved.get(k))
+
+    return [k for k in keys if old(k) != current.get(k)]
 
 
 def _check_run_dir(out: Path, config: TrainConfig) -> None:
@@ -371,12 +466,21 @@ def _check_run_dir(out: Path, config: TrainConfig) -> None:
     current = json.loads(json.dumps(asdict(config), default=str))
     identity = tuple(k for k in current if k not in NOT_IDENTITY)
     runtime = {"device": describe_device(), "jax_version": jax.__version__, "commit": git_commit()}
-    check_run_config(out / "config.json", {**current, "runtime": runtime}, identity)
+    check_run_config(out / "config.json", {**current, "runtime": runtime}, identity, differing_settings)
 
 
 def _load_checkpoint(path: Path, template: TrainState) -> TrainState:
+    """The checkpoint at `path`: ValueError naming the file when it is not a checkpoint at all (damaged:
+    checkpoints are replaced atomically, so a kill never leaves half of one) or holds other networks."""
     try:
-        state = flax.serialization.from_bytes(template, path.read_bytes())
+        raw = flax.serialization.msgpack_restore(path.read_bytes())
+        if not isinstance(raw, dict):
+            raise ValueError(f"it holds a {type(raw).__name__}")
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"{path} is damaged: not a readable checkpoint ({type(err).__name__}: {err}); delete it to "
+                         "restart the run from step 0") from err
+    try:
+        state = flax.serialization.from_state_dict(template, raw)
         shapes = jax.tree_util.tree_map(jnp.shape, (template, state))
         if shapes[0] != shapes[1]:
             raise ValueError("parameter shapes differ")
@@ -385,10 +489,35 @@ def _load_checkpoint(path: Path, template: TrainState) -> TrainState:
     return state
 
 
+def load_checkpoint(path: Path, template: TrainState) -> TrainState:
+    """A run's saved TrainState (shaped like `template`); ValueError naming the file if it does not fit."""
+    return _load_checkpoint(path, template)
+
+
 def _drop_records_after(out: Path, step: int) -> None:
     """Forget log lines written after the checkpoint we resume from (they will be redone)."""
     for name in ("metrics.jsonl", "eval.jsonl"):
         path = out / name
-        if path.exists():
-            lines = [line for line in path.read_text().splitlines() if json.loads(line)["step"] <= step]
-            atomic_write_text(path, "".join(line + "\n" for line in lines))
+        if path.exists():  # a torn last line (a kill mid-append) is dropped with a warning
+            text = "".join(line + "\n" for line, record in read_jsonl_lines(path, require=("step",))
+                           if record["step"] <= step)
+            if text.encode() != path.read_bytes():
+                atomic_write_text(path, text)
+
+
+def read_run_config(out: Path) -> dict:
+    """A run directory's config.json as a dict; one-line errors naming what is wrong (not a directory,
+    no config, not JSON, not an object)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out} is a file, not a run directory")
+    path = out / "config.json"
+    if not path.is_file():
+        raise ValueError(f"{out} is not a run directory: it has no config.json")
+    try:
+        config = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path} is not valid JSON ({err})") from err
+    if not isinstance(config, dict):
+        raise ValueError(f"{path} holds a JSON {type(config).__name__}, not a run's config")
+    return config

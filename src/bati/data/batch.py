@@ -23,7 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from bati.data import store
-from bati.envs import EPISODE_LENGTH, get_family
+from bati.errors import BatiWarning
+from bati.envs import EPISODE_LENGTH, TaskSplit, get_family
 
 TRANSITION_FIELDS = ("observations", "actions", "rewards", "next_observations")
 FIELDS = TRANSITION_FIELDS + ("collector",)
@@ -103,23 +104,26 @@ def sample_batch(data: TaskData, key: jax.Array, task_batch: int, batch_size: in
 
 @functools.partial(jax.jit, static_argnames=("length",))
 def sample_contexts(data: TaskData, key: jax.Array, task_ids: jax.Array, length: int) -> dict:
-    """For each task id, `length` consecutive transitions of one episode of that task.
+    """For each task id, `length` consecutive transitions of that task's data.
 
-    The window's episode and start (0 .. episode_length - length) are uniform, so every window
-    that lies inside one episode is equally likely; a context never spans two episodes (whose
-    collectors may differ). Returns observations (K, C, obs_dim), actions, rewards (K, C),
+    Up to one episode (length <= episode_length): the window's episode and start (0 ..
+    episode_length - length) are uniform, so every window inside one episode is equally likely and a
+    context never spans two episodes (whose collectors may differ). Longer contexts (Table 1's
+    C = 400) are the first `length` steps of ceil(length / episode_length) consecutive episodes,
+    the first of them uniform. Returns observations (K, C, obs_dim), actions, rewards (K, C),
     next_observations.
     """
     n = data.rewards.shape[1]
-    if not 0 < length <= data.episode_length:
-        raise ValueError(
-            f"context length {length} must be in [1, {data.episode_length}] (one episode at most)"
-        )
+    n_episodes, episode_length = n // data.episode_length, data.episode_length
+    spanned = -(-length // episode_length) if length > 0 else 0
+    if length < 1 or spanned > n_episodes:
+        raise ValueError(f"context length {length} must be in [1, {n_episodes * episode_length}] "
+                         f"({n_episodes} episodes of {episode_length} steps per task)")
     k_episode, k_start = jax.random.split(key)
     shape = task_ids.shape
-    episode = jax.random.randint(k_episode, shape, 0, n // data.episode_length)
-    start = jax.random.randint(k_start, shape, 0, data.episode_length - length + 1)
-    steps = (episode * data.episode_length + start)[..., None] + jnp.arange(length)
+    episode = jax.random.randint(k_episode, shape, 0, n_episodes - spanned + 1)
+    start = jax.random.randint(k_start, shape, 0, max(episode_length - length, 0) + 1)
+    steps = (episode * episode_length + start)[..., None] + jnp.arange(length)
     rows = task_ids[..., None]
     return {
         "observations": data.observations[rows, steps],
@@ -138,6 +142,7 @@ def load_family_data(
     root: str | Path = store.DEFAULT_ROOT,
     *,
     cache: bool = True,
+    tasks: TaskSplit | None = None,
 ) -> FamilyData:
     """Read a complete collection (see `bati data collect`) into flat arrays.
 
@@ -146,8 +151,11 @@ def load_family_data(
     """
     fam = get_family(family)
     noise = fam.validate_noise(noise)
-    path = store.collection_dir(root, family, scale, seed, noise)
-    manifest = store.read_manifest(path, fam, scale, seed, noise, root)
+    tasks = (tasks or TaskSplit()).checked(fam)
+    path = store.collection_dir(root, family, scale, seed, noise, tasks)
+    manifest = store.read_manifest(path, fam, scale, seed, noise, root, tasks)
+    redo = store.collect_command(fam, scale, seed, noise, root, tasks)
+    store.require_intact(path, manifest, redo)  # sizes only (a stat per file): a truncated or missing file
     probe = fam.make_env(manifest["train_tasks"][0], noise)
     obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
     probe.close()
@@ -160,14 +168,15 @@ def load_family_data(
     length = int(manifest.get("episode_length", EPISODE_LENGTH))
 
     arrays = _load_cache(path, manifest, obs_dim, action_dim) if cache else None
-    if arrays is None:
+    if arrays is None:  # the datasets themselves are read: check every byte against the manifest first
+        store.require_intact(path, manifest, redo, checksums=True)
         arrays = _read_minari(path, manifest, obs_dim, action_dim, length)
         if cache:
             try:
                 collection_id = np.array(manifest["collection_id"])
                 store.save_npz(path / store.ARRAY_CACHE, {"collection_id": collection_id, **arrays})
             except OSError as err:  # a read-only data directory is fine
-                warnings.warn(f"could not write the array cache {path / store.ARRAY_CACHE}: {err}")
+                warnings.warn(f"could not write the array cache {path / store.ARRAY_CACHE}: {err}", BatiWarning)
 
     def task_data(split: str) -> TaskData:
         return TaskData(
@@ -208,14 +217,15 @@ def ensure_family_data(
     progress: bool = True,
     cache: bool = True,
     workers: int | None = None,
+    tasks: TaskSplit | None = None,
 ) -> FamilyData:
     """Collect the data if it is not on disk yet (see `collect`; `workers`: its worker processes,
     default all cores), then load it."""
     from bati.data.collect import collect
 
     collect(family, scale, seed, noise, root, n_episodes=n_episodes, n_context_episodes=n_context_episodes,
-            zoo_dir=zoo_dir, progress=progress, workers=workers)
-    return load_family_data(family, scale, seed, noise, root, cache=cache)
+            zoo_dir=zoo_dir, progress=progress, workers=workers, tasks=tasks)
+    return load_family_data(family, scale, seed, noise, root, cache=cache, tasks=tasks)
 
 
 def _read_minari(path: Path, manifest: dict, obs_dim: int, action_dim: int, length: int) -> dict:
@@ -261,7 +271,9 @@ def _load_cache(path: Path, manifest: dict, obs_dim: int, action_dim: int) -> di
             if str(npz["collection_id"]) != manifest["collection_id"]:
                 return None
             arrays = {key: npz[key] for key in npz.files if key != "collection_id"}
-    except Exception:  # damaged cache: rebuild it from the Minari datasets
+    except Exception as err:  # damaged cache (zip CRCs catch edits): rebuild it from the Minari datasets
+        warnings.warn(f"{file} is damaged ({type(err).__name__}: {err}); rebuilding it from the datasets",
+                      BatiWarning)
         return None
     for split in store.SPLITS:
         if any(f"{split}__{name}" not in arrays for name in FIELDS):

@@ -33,8 +33,8 @@ from typing import Any
 import numpy as np
 
 from bati.data import store
-from bati.envs import EPISODE_LENGTH, Task, TaskFamily, get_family
-from bati.io import atomic_write_json, git_commit
+from bati.envs import EPISODE_LENGTH, Task, TaskFamily, TaskSplit, get_family
+from bati.io import atomic_write_json, check_directory, git_commit, hold_lock
 
 N_TRAIN = 20
 N_TEST = 20
@@ -45,7 +45,8 @@ SCALES: dict[str, dict[str, Any]] = {
     "quick": {"n_episodes": 20, "n_context_episodes": 5},
     "paper": {
         "n_episodes": {"AntDir": 500, "HalfCheetahVel": 1000, "HalfCheetahDir": 1000, "HopperParam": 1500,
-                       "WalkerParam": 1500, "PointGoal": 500},
+                       "WalkerParam": 1500, "PointGoal": 500,
+                       "KuhnPoker": 500},  # 50,000 hands per task (the paper does not give Kuhn's size)
         "n_context_episodes": 20,
     },
 }
@@ -91,13 +92,15 @@ class Plan:
         return sum(len(d.collectors) for d in self.datasets)
 
 
-def make_plan(family: TaskFamily, seed: int, n_episodes: int, n_context_episodes: int) -> Plan:
-    """The Eq. 9 / Eq. 10 assignment of collectors to episodes, reproducibly from `seed`."""
+def make_plan(family: TaskFamily, seed: int, n_episodes: int, n_context_episodes: int,
+              tasks: TaskSplit | None = None) -> Plan:
+    """The Eq. 9 / Eq. 10 assignment of collectors to episodes, reproducibly from `seed`; `tasks`
+    picks the training and test tasks (default: 20 + 20 from `family.split_tasks(seed)`)."""
     if n_episodes < 2:
         raise ValueError(f"n_episodes={n_episodes}: Eq. 9 needs at least 2 episodes per training task")
     if n_context_episodes < 1 or (family.kind == "dynamics" and n_context_episodes < 2):
         raise ValueError(f"n_context_episodes={n_context_episodes} is too small for {family.name}")
-    train, test = family.split_tasks(seed, N_TRAIN, N_TEST)
+    train, test = (tasks or TaskSplit(N_TRAIN, N_TEST)).draw(family, seed)
     rng = np.random.default_rng([seed, _PLAN_STREAM])
     datasets = []
     for i, task in enumerate(train):
@@ -148,28 +151,32 @@ def collect(
     zoo_dir: str | Path | None = None,
     progress: bool = True,
     workers: int | None = None,
+    tasks: TaskSplit | None = None,
 ) -> CollectResult:
     """Collect (or find cached) the datasets of `family` under `<root>/<Family>/<scale>-seed<S>-eps<eps>`.
 
     `n_episodes` / `n_context_episodes` override the scale's sizes (for tests and experiments);
     `zoo_dir` is where the expert is loaded from (default: the package zoo). `workers` processes
     roll out the episodes (default: all cores, at most one per chunk of CHUNK episodes); the
-    datasets written are the same whatever their number.
+    datasets written are the same whatever their number. `tasks` changes which tasks train and test
+    (counts, parameter ranges); a non-default split is its own collection (its label in the name).
     """
     start = time.perf_counter()
     workers = check_workers(workers)
     fam = get_family(family)
     noise = fam.validate_noise(noise)
+    tasks = (tasks or TaskSplit()).checked(fam)
     default_n, default_ctx = scale_sizes(family, scale)
     n_episodes = default_n if n_episodes is None else int(n_episodes)
     n_context_episodes = default_ctx if n_context_episodes is None else int(n_context_episodes)
-    target = store.collection_dir(root, family, scale, seed, noise)
+    target = store.collection_dir(root, family, scale, seed, noise, tasks)
 
-    cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes)
+    cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks)
     if cached is not None:
         return CollectResult(target, cached, True, time.perf_counter() - start)
+    check_directory(target.parent, "the data directory")  # a file, or not writable: say so before any work
 
-    plan = make_plan(fam, seed, n_episodes, n_context_episodes)
+    plan = make_plan(fam, seed, n_episodes, n_context_episodes, tasks)
     n_chunks = -(-plan.n_episodes // CHUNK)
     workers = min(default_workers() if workers is None else workers, n_chunks)
     load_start = time.perf_counter()
@@ -186,59 +193,92 @@ def collect(
         )
 
     target.parent.mkdir(parents=True, exist_ok=True)
-    store.remove_stale_partials(target)
-    cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes)
-    if cached is not None:  # another process finished the same collection meanwhile
-        return CollectResult(target, cached, True, time.perf_counter() - start)
-    if target.exists():  # no manifest: an incomplete or foreign directory; start over
-        stale = store.partial_dir(target)
-        target.rename(stale)
-        shutil.rmtree(stale, ignore_errors=True)
-    tmp = store.partial_dir(target)
-    tmp.mkdir()
-    try:
-        commit = git_commit()
-        collection_id = uuid.uuid4().hex
-        base_meta = {"family": family, "scale": scale, "seed": seed, "noise": noise, "commit": commit,
-                     "collection_id": collection_id}
-        timings.update(run_collection(fam, plan, expert, noise, seed, tmp, base_meta, progress=progress,
-                                      workers=workers, zoo_dir=zoo_dir))
-        manifest = {
-            "format": store.FORMAT_VERSION,
-            **base_meta,
-            "n_episodes": n_episodes,
-            "n_context_episodes": n_context_episodes,
-            "episode_length": EPISODE_LENGTH,
-            "obs_dim": obs_dim,
-            "action_dim": action_dim,
-            "task_dim": fam.task_dim,
-            "kind": fam.kind,
-            "train_tasks": plan.train_tasks,
-            "test_tasks": plan.test_tasks,
-            "p_test_most_different": plan.most_different,
-            "p_train_most_similar": plan.most_similar,
-            "datasets": {s: [d.name for d in plan.datasets if d.split == s] for s in store.SPLITS},
-            "transitions": plan.n_episodes * EPISODE_LENGTH,
-            "expert": {"train_steps": expert.meta.get("train_steps"), "seed": expert.meta.get("seed")},
-            "collect_wall_time_s": round(time.perf_counter() - start, 2),
-            "workers": workers,  # how it was made, not what it is: not part of the cache identity
-            "timings_s": {k: round(v, 2) for k, v in timings.items()},
-            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "command": store.collect_command(fam, scale, seed, noise, root),
-        }
-        atomic_write_json(tmp / store.MANIFEST, manifest)  # written last
+    # one writer per collection: a second process fails at once naming the first (its pid, host)
+    with hold_lock(store.lock_path(target), f"the collection {target}"):
+        store.remove_stale_partials(target)
+        cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks)
+        if cached is not None:  # another process finished the same collection meanwhile
+            return CollectResult(target, cached, True, time.perf_counter() - start)
+        if target.exists():  # no manifest: an incomplete or foreign directory; start over
+            stale = store.partial_dir(target)
+            target.rename(stale)
+            shutil.rmtree(stale, ignore_errors=True)
+        tmp = store.partial_dir(target)
+        tmp.mkdir()
         try:
-            tmp.rename(target)
-        except OSError:  # a concurrent collection finished first: keep its (identical) data
-            existing = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes)
-            if existing is None:
-                raise
+            commit = git_commit()
+            collection_id = uuid.uuid4().hex
+            base_meta = {"family": family, "scale": scale, "seed": seed, "noise": noise, "commit": commit,
+                         "collection_id": collection_id}
+            timings.update(run_collection(fam, plan, expert, noise, seed, tmp, base_meta, progress=progress,
+                                          workers=workers, zoo_dir=zoo_dir))
+            manifest = {
+                "format": store.FORMAT_VERSION,
+                **base_meta,
+                "n_episodes": n_episodes,
+                "n_context_episodes": n_context_episodes,
+                "episode_length": EPISODE_LENGTH,
+                "obs_dim": obs_dim,
+                "action_dim": action_dim,
+                "task_dim": fam.task_dim,
+                "kind": fam.kind,
+                "task_split": tasks.record(),
+                "train_tasks": plan.train_tasks,
+                "test_tasks": plan.test_tasks,
+                "p_test_most_different": plan.most_different,
+                "p_train_most_similar": plan.most_similar,
+                "datasets": {s: [d.name for d in plan.datasets if d.split == s] for s in store.SPLITS},
+                "transitions": plan.n_episodes * EPISODE_LENGTH,
+                "expert": {"train_steps": expert.meta.get("train_steps"), "seed": expert.meta.get("seed")},
+                "collect_wall_time_s": round(time.perf_counter() - start, 2),
+                "workers": workers,  # how it was made, not what it is: not part of the cache identity
+                "timings_s": {k: round(v, 2) for k, v in timings.items()},
+                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "command": store.collect_command(fam, scale, seed, noise, root, tasks),
+            }
+            manifest["settings"] = collection_settings(fam, scale, seed, noise, n_episodes,
+                                                       n_context_episodes, tasks, zoo_dir)
+            manifest["files"] = store.file_checksums(tmp, manifest["datasets"])  # what verify and loads check
+            atomic_write_json(tmp / store.MANIFEST, manifest)  # written last
+            try:
+                tmp.rename(target)
+            except OSError:  # a concurrent collection finished first: keep its (identical) data
+                existing = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes,
+                                   tasks)
+                if existing is None:
+                    raise
+                shutil.rmtree(tmp, ignore_errors=True)
+                return CollectResult(target, existing, True, time.perf_counter() - start)
+        except OSError as err:  # e.g. a full disk under Minari: nothing stays, the error names the collection
             shutil.rmtree(tmp, ignore_errors=True)
-            return CollectResult(target, existing, True, time.perf_counter() - start)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return CollectResult(target, manifest, False, time.perf_counter() - start)
+            raise _naming_collection(err, target, tmp) from err
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return CollectResult(target, manifest, False, time.perf_counter() - start)
+
+
+def _naming_collection(err: OSError, target: Path, tmp: Path) -> OSError:
+    """An OS error while writing a collection, naming the collection rather than its temporary directory
+    (which is gone by then); bati's own errors (no errno, a whole sentence) pass unchanged."""
+    if err.errno is None or (err.filename is not None and tmp.name not in str(err.filename)):
+        return err
+    named = OSError(err.errno, err.strerror or str(err), str(target))
+    named.__cause__ = err
+    return named
+
+
+def collection_settings(family: TaskFamily, scale: str, seed: int, noise: float, n_episodes: int,
+                        n_context_episodes: int, tasks: TaskSplit, zoo_dir) -> dict:
+    """Everything that decides a collection's content, in one place of its manifest: with the same
+    settings (and the same expert, by its sha256) a collection is reproduced file for file."""
+    from bati.experts.zoo import ZOO_DIR
+
+    actor = Path(zoo_dir or ZOO_DIR) / family.name / "actor.msgpack"
+    return {"family": family.name, "scale": scale, "seed": seed, "noise": noise, "n_episodes": n_episodes,
+            "n_context_episodes": n_context_episodes, "episode_length": EPISODE_LENGTH, "chunk": CHUNK,
+            "other_fraction": OTHER_FRACTION, "task_split": tasks.record(),
+            "expert_sha256": store.sha256_file(actor) if actor.is_file() else None}
 
 
 _EXPERTS: dict[tuple, Any] = {}
@@ -262,11 +302,11 @@ def load_expert(family: str, zoo_dir: str | Path | None = None):
     return _EXPERTS[key]
 
 
-def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes) -> dict | None:
+def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks=None) -> dict | None:
     """The manifest of a complete collection at `target`, None if there is none."""
     if not (target / store.MANIFEST).is_file():
         return None
-    manifest = store.read_manifest(target, fam, scale, seed, noise, root)
+    manifest = store.read_manifest(target, fam, scale, seed, noise, root, tasks)
     sizes = (manifest.get("n_episodes"), manifest.get("n_context_episodes"))
     if sizes != (n_episodes, n_context_episodes):
         raise ValueError(

@@ -2,11 +2,13 @@
 
 ```
 <root>/<Family>/<scale>-seed<S>-eps<eps>/     one collection (renamed into place when complete)
-    manifest.json                             written last: its presence marks a complete collection
+    manifest.json                             written last: its presence marks a complete collection;
+                                              `files`: each dataset file's size and sha256 (format >= 2)
     train-00-v0/ ... train-19-v0/             Eq. 9 offline datasets of the 20 training tasks
     p_test-00-v0/ ... p_test-19-v0/           Eq. 10 context data of the 20 test tasks
     p_train-00-v0/ ... p_train-19-v0/         p_train-style context data of the 20 test tasks
     arrays.npz                                flat-array cache written by the loader (optional)
+<root>/<Family>/.<scale>-seed<S>-eps<eps>.lock  held while the collection is written (see bati.io.hold_lock)
 ```
 
 Each dataset directory is a standard Minari dataset (HDF5 storage): point `MINARI_DATASETS_PATH`
@@ -16,8 +18,10 @@ at the collection directory and `minari.load_dataset("train-00-v0")` reads it.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
+import re
 import shutil
 import warnings
 from collections.abc import Iterator
@@ -27,11 +31,14 @@ from typing import Any
 
 import numpy as np
 
-from bati.envs import TaskFamily
+from bati.envs import TaskFamily, TaskSplit
+from bati.io import pid_alive
 
 MANIFEST = "manifest.json"
 ARRAY_CACHE = "arrays.npz"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+CHECKSUM_FORMAT = 2  # manifests from this format on record every dataset file's size and sha256
+READABLE_FORMATS = (1, 2)
 SPLITS = ("train", "p_test", "p_train")
 DATASET_VERSION = 0  # Minari ids need a version suffix: "train-00-v0"
 DEFAULT_ROOT = Path("data")
@@ -52,9 +59,12 @@ def collection_name(scale: str, seed: int, noise: float) -> str:
     return f"{scale}-seed{seed}-eps{noise:g}"
 
 
-def collection_dir(root: str | Path, family: str, scale: str, seed: int, noise: float) -> Path:
-    """`<root>/<Family>/<scale>-seed<S>-eps<eps>` (noise already validated / defaulted)."""
-    return Path(root) / family / collection_name(scale, seed, noise)
+def collection_dir(root: str | Path, family: str, scale: str, seed: int, noise: float,
+                   tasks: TaskSplit | None = None) -> Path:
+    """`<root>/<Family>/<scale>-seed<S>-eps<eps>[<split>]` (noise already validated / defaulted); a
+    non-default task split adds its label, e.g. `-tasks10x30` or `-train0to3.14159-test3.14159to6.28319`."""
+    label = "" if tasks is None else tasks.label()
+    return Path(root) / family / (collection_name(scale, seed, noise) + label)
 
 
 def dataset_name(split: str, index: int) -> str:
@@ -62,46 +72,180 @@ def dataset_name(split: str, index: int) -> str:
     return f"{split}-{index:02d}-v{DATASET_VERSION}"
 
 
-def collect_command(family: TaskFamily, scale: str, seed: int, noise: float, root: str | Path) -> str:
+def collect_command(family: TaskFamily, scale: str, seed: int, noise: float, root: str | Path,
+                    tasks: TaskSplit | None = None) -> str:
     """The exact `bati data collect ...` command that builds this collection."""
     command = f"bati data collect --family {family.name} --scale {scale} --seed {seed}"
     if noise != family.default_noise:
         command += f" --noise {noise:g}"
+    tasks = tasks or TaskSplit()
+    if (tasks.n_train, tasks.n_test) != (20, 20):
+        command += f" --n-train {tasks.n_train} --n-test {tasks.n_test}"
+    for side, task_range in (("train", tasks.train_range), ("test", tasks.test_range)):
+        if task_range is not None:
+            command += f" --{side}-range {task_range[0]:.17g} {task_range[1]:.17g}"
     if Path(root) != DEFAULT_ROOT:
         command += f" --root {root}"
     return command
 
 
 # --- manifest ----------------------------------------------------------------------------------
-def read_manifest(path: Path, family: TaskFamily, scale: str, seed: int, noise: float, root) -> dict:
+def read_manifest(path: Path, family: TaskFamily, scale: str, seed: int, noise: float, root,
+                  tasks: TaskSplit | None = None) -> dict:
     """The manifest of a complete collection, or DatasetNotFoundError / DatasetError."""
+    tasks = tasks or TaskSplit()
     manifest_path = path / MANIFEST
     if not manifest_path.is_file():
         raise DatasetNotFoundError(
             f"no {family.name} data at {path} (scale={scale}, seed={seed}, eps={noise:g}); "
-            f"collect it with `{collect_command(family, scale, seed, noise, root)}`"
+            f"collect it with `{collect_command(family, scale, seed, noise, root, tasks)}`"
         )
     try:
         manifest = json.loads(manifest_path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise DatasetError(f"{manifest_path} is corrupted ({err}); delete {path} and re-run "
-                           f"`{collect_command(family, scale, seed, noise, root)}`") from err
-    redo = f"delete {path} and re-run `{collect_command(family, scale, seed, noise, root)}`"
-    expected = {"format": FORMAT_VERSION, "family": family.name, "scale": scale, "seed": seed, "noise": noise}
+                           f"`{collect_command(family, scale, seed, noise, root, tasks)}`") from err
+    redo = f"delete {path} and re-run `{collect_command(family, scale, seed, noise, root, tasks)}`"
+    if not isinstance(manifest, dict):
+        raise DatasetError(f"{manifest_path} holds a JSON {type(manifest).__name__}, not a manifest; {redo}")
+    if manifest.get("format") not in READABLE_FORMATS:
+        raise DatasetError(f"{manifest_path}: format is {manifest.get('format')!r}, this bati reads "
+                           f"{' or '.join(map(str, READABLE_FORMATS))}; {redo}")
+    expected = {"family": family.name, "scale": scale, "seed": seed, "noise": noise}
     for key, value in expected.items():
-        if not isinstance(manifest, dict) or manifest.get(key) != value:
-            found = manifest.get(key) if isinstance(manifest, dict) else manifest
-            raise DatasetError(f"{manifest_path}: {key} is {found!r}, expected {value!r}; {redo}")
+        if manifest.get(key) != value:
+            raise DatasetError(f"{manifest_path}: {key} is {manifest.get(key)!r}, expected {value!r}; {redo}")
     missing = [key for key in REQUIRED_KEYS if key not in manifest]
     if missing:
         raise DatasetError(f"{manifest_path} lacks {', '.join(missing)}; {redo}")
-    train, test = family.split_tasks(seed)
-    for name, tasks in (("train_tasks", train), ("test_tasks", test)):
+    train, test = tasks.draw(family, seed)
+    for name, expected_tasks in (("train_tasks", train), ("test_tasks", test)):
         stored = manifest[name]
-        if len(stored) != len(tasks) or not np.allclose(np.asarray(stored, float), np.asarray(tasks, float)):
-            raise DatasetError(f"{manifest_path}: its {name} are not {family.name}.split_tasks({seed}) "
+        if len(stored) != len(expected_tasks) or not np.allclose(np.asarray(stored, float),
+                                                                 np.asarray(expected_tasks, float)):
+            drawn = f"{family.name}.split_tasks({seed})" if tasks.is_default else f"the split {tasks.record()}"
+            raise DatasetError(f"{manifest_path}: its {name} are not {drawn} "
                                f"(collected with another task sampler?); {redo}")
     return manifest
+
+
+# --- integrity: the size and sha256 of every dataset file -------------------------------------
+def dataset_files(path: Path, datasets: dict[str, list[str]]) -> list[str]:
+    """Every file of the collection's datasets, relative to the collection directory, sorted."""
+    names = [name for split in SPLITS for name in datasets.get(split, [])]
+    files = (f for name in names for f in (path / name).rglob("*") if f.is_file())
+    return sorted(f.relative_to(path).as_posix() for f in files)
+
+
+def sha256_file(file: Path) -> str:
+    digest = hashlib.sha256()
+    with open(file, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def file_checksums(path: Path, datasets: dict[str, list[str]]) -> dict[str, dict]:
+    """{relative path: {"bytes", "sha256"}} of every dataset file: the manifest's record of what it wrote."""
+    return {rel: {"bytes": (path / rel).stat().st_size, "sha256": sha256_file(path / rel)}
+            for rel in dataset_files(path, datasets)}
+
+
+def has_checksums(manifest: dict) -> bool:
+    """Whether the manifest records its files (format >= CHECKSUM_FORMAT; older collections do not)."""
+    return isinstance(manifest.get("files"), dict)
+
+
+def file_problems(path: Path, manifest: dict, *, checksums: bool) -> list[str]:
+    """What is wrong with the collection's files, one phrase each naming the file ([] when intact).
+
+    Sizes and presence always: a stat per file, cheap enough for every load, and it catches a
+    truncated or missing file. With `checksums` also each file's sha256 (reads every byte: `bati data
+    verify`, and once when the loader builds its array cache), which catches an edit of the same size.
+    Older manifests record no files: nothing to compare ([]).
+    """
+    if not has_checksums(manifest):
+        return []
+    problems, missing = [], set()
+    for rel, recorded in sorted(manifest["files"].items()):
+        file, dataset = path / rel, path / Path(rel).parts[0]
+        if not dataset.is_dir():
+            if dataset not in missing:
+                problems.append(f"{dataset} is missing")
+                missing.add(dataset)
+            continue
+        if not file.is_file():
+            problems.append(f"{file} is missing")
+            continue
+        want = recorded.get("bytes") if isinstance(recorded, dict) else None
+        size = file.stat().st_size
+        if not isinstance(want, int):
+            problems.append(f"{path / MANIFEST} records no size for {rel}")
+        elif size < want:
+            problems.append(f"{file} is truncated ({size:,} of {want:,} bytes)")
+        elif size > want:
+            problems.append(f"{file} has grown ({size:,} bytes, {want:,} recorded)")
+        elif checksums and sha256_file(file) != recorded.get("sha256"):
+            problems.append(f"{file} was edited (its sha256 differs from the manifest's)")
+    return problems
+
+
+def require_intact(path: Path, manifest: dict, redo: str, *, checksums: bool = False) -> None:
+    """DatasetError (one line naming the first damaged file) unless the collection's files are as
+    written; `redo` is the command that rebuilds it."""
+    problems = file_problems(path, manifest, checksums=checksums)
+    if problems:
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise DatasetError(f"{problems[0]}{more}: the collection {path} is damaged; `bati data verify --root "
+                           f"{path.parents[1]}` lists every file; delete it and re-run `{redo}`")
+
+
+def verify_collection(path: Path) -> tuple[str, list[str]]:
+    """`bati data verify` of one collection directory: ("ok" | "damaged" | "unchecked", details)."""
+    manifest_path = path / MANIFEST
+    if not manifest_path.is_file():
+        return "damaged", [f"{manifest_path} is missing (an interrupted or foreign collection)"]
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        return "damaged", [f"{manifest_path} is unreadable ({err})"]
+    if not isinstance(manifest, dict):
+        return "damaged", [f"{manifest_path} holds a JSON {type(manifest).__name__}, not a manifest"]
+    if not has_checksums(manifest):
+        return "unchecked", [f"no checksums (collected before format {CHECKSUM_FORMAT})"]
+    problems = file_problems(path, manifest, checksums=True)
+    if problems:
+        return "damaged", problems
+    return "ok", [f"{len(manifest['files'])} files match their size and sha256"]
+
+
+_NAME = re.compile(r"^(?P<scale>[^-]+)-seed(?P<seed>\d+)-eps(?P<noise>[^-]+)")
+
+
+def find_collections(root: Path, family: str | None = None, scale: str | None = None, seed: int | None = None,
+                     noise: float | None = None) -> list[Path]:
+    """The collection directories under `root` (`<root>/<Family>/<scale>-seed<S>-eps<eps>...`) that
+    match the given settings (None matches any), found by name, so a damaged manifest is found too."""
+    found = []
+    families = [Path(root) / family] if family else sorted(p for p in Path(root).iterdir() if p.is_dir())
+    for family_dir in families:
+        if not family_dir.is_dir() or family_dir.name.startswith("."):
+            continue
+        for path in sorted(family_dir.iterdir()):
+            match = _NAME.match(path.name)
+            if path.name.startswith(".") or not path.is_dir() or not match:
+                continue
+            if ((scale is None or match["scale"] == scale) and (seed is None or int(match["seed"]) == seed)
+                    and (noise is None or _float(match["noise"]) == noise)):
+                found.append(path)
+    return found
+
+
+def _float(text: str) -> float | None:
+    try:
+        return float(text)
+    except ValueError:
+        return None
 
 
 # --- Minari io ---------------------------------------------------------------------------------
@@ -223,6 +367,11 @@ def read_dataset(path: Path, obs_dim: int, action_dim: int, length: int) -> dict
 
 
 # --- atomic directories -------------------------------------------------------------------------
+def lock_path(target: Path) -> Path:
+    """The lock file held while `target` is collected: a hidden sibling, so the collection stays clean."""
+    return target.parent / f".{target.name}.lock"
+
+
 def partial_dir(target: Path) -> Path:
     """A fresh temporary sibling of `target` to collect into."""
     return target.parent / f".{target.name}.partial-{os.getpid()}-{os.urandom(4).hex()}"
@@ -245,16 +394,7 @@ def remove_stale_partials(target: Path) -> list[Path]:
     return removed
 
 
-def _alive(pid: int) -> bool:
-    if pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+_alive = pid_alive  # a partial directory of a live process is another collection in progress
 
 
 def save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:

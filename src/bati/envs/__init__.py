@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from bati.envs.base import EPISODE_LENGTH, Task, TaskError, TaskFamily
+from bati.envs.base import EPISODE_LENGTH, Task, TaskError, TaskFamily, TaskSplit
+from bati.errors import BatiError
 
 # family name -> (module, family class, env class); modules are imported lazily so that
 # `import bati.envs` stays cheap and PointGoal works without loading MuJoCo.
@@ -20,8 +21,24 @@ _FAMILIES = {
     "HopperParam": ("bati.envs.hopper_param", "HopperParamFamily", "HopperParamEnv"),
     "WalkerParam": ("bati.envs.walker_param", "WalkerParamFamily", "WalkerParamEnv"),
     "PointGoal": ("bati.envs.point", "PointGoalFamily", "PointGoalEnv"),
+    "KuhnPoker": ("bati.envs.kuhn", "KuhnPokerFamily", "KuhnPokerEnv"),
 }
 FAMILY_NAMES = tuple(_FAMILIES)
+# families that need an optional extra: name -> (module it imports, extra, what it is, its pip package)
+_EXTRAS = {"KuhnPoker": ("pyspiel", "games", "OpenSpiel", "open_spiel")}
+
+
+class FamilyUnavailable(BatiError, ImportError):
+    """A family whose optional dependency is not installed (the message says how to install it)."""
+
+
+def family_available(name: str) -> bool:
+    """Whether `get_family(name)` works here (False for a family whose extra is missing)."""
+    try:
+        get_family(name)
+    except FamilyUnavailable:
+        return False
+    return True
 
 
 def _check_name(name: str) -> None:
@@ -35,7 +52,15 @@ def get_family(name: str) -> TaskFamily:
 
     _check_name(name)
     module, family_class, _ = _FAMILIES[name]
-    return getattr(importlib.import_module(module), family_class)()
+    try:
+        loaded = importlib.import_module(module)
+    except ImportError as err:
+        if name in _EXTRAS and err.name == _EXTRAS[name][0]:
+            _, extra, what, package = _EXTRAS[name]
+            raise FamilyUnavailable(f"{name} needs {what}, which is not installed; install it with "
+                                    f"`pip install 'bati[{extra}]'` (or `pip install {package}`)") from err
+        raise
+    return getattr(loaded, family_class)()
 
 
 def make_env(name: str, task: Task, noise: float | None = None, **kwargs) -> gym.Env:
@@ -71,4 +96,5 @@ def _register() -> None:
 _register()
 _quiet_mujoco_deprecation()
 
-__all__ = ["EPISODE_LENGTH", "FAMILY_NAMES", "Task", "TaskError", "TaskFamily", "get_family", "make_env"]
+__all__ = ["EPISODE_LENGTH", "FAMILY_NAMES", "FamilyUnavailable", "Task", "TaskError", "TaskFamily", "TaskSplit",
+           "family_available", "get_family", "make_env"]

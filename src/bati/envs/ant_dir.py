@@ -24,6 +24,7 @@ class AntDirFamily(TaskFamily):
     task_dim = 2  # the angle as (cos, sin): seamless at the 2*pi wrap-around
     default_noise = 1.0
     noise_meaning = "std (radians) of the Gaussian noise added to the goal direction at every step"
+    parameter_range = (0.0, 2 * math.pi)
 
     def _sample(self, n, rng):
         return [float(x) for x in rng.uniform(0.0, 2 * math.pi, size=n)]

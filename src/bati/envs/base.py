@@ -10,6 +10,7 @@ from __future__ import annotations
 import abc
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
@@ -37,7 +38,16 @@ class TaskFamily(abc.ABC):
     default_noise: float  # the family's default eps ("high noise" setting)
     noise_meaning: str  # what eps perturbs, for docs and `bati envs`
     max_noise: float = math.inf
-    kind: str = "reward"  # "reward" (tasks differ in R_M) or "dynamics" (tasks differ in P_M)
+    kind: str = "reward"  # "reward" (tasks differ in R_M), "dynamics" (in P_M) or "opponent" (KuhnPoker: both)
+    discrete_actions: bool = False
+    """Actions are one of `action_space.shape[0]` choices, stored one-hot (IQL's categorical actor)."""
+    default_context_length: int = EPISODE_LENGTH
+    """Transitions in a context unless a run says otherwise (one episode; KuhnPoker: 10 hands = 20)."""
+    return_unit: str = "episode"
+    """What an evaluation return sums over: an episode of 200 steps, or (KuhnPoker) one hand."""
+    parameter_range: tuple[float, float] | None = None
+    """The interval of the scalar parameter a task is drawn uniformly from, for families whose tasks
+    have one (AntDir's angle, a target velocity, a log-friction); None: no task ranges (Table 2)."""
 
     @property
     def env_id(self) -> str:
@@ -76,6 +86,16 @@ class TaskFamily(abc.ABC):
         tasks = self.sample_tasks(n_train + n_test, seed)
         return tasks[:n_train], tasks[n_train:]
 
+    def task_from_parameter(self, value: float) -> Task:
+        """The task whose scalar parameter is `value` (identity unless the task is not the parameter)."""
+        return float(value)
+
+    def sample_tasks_in(self, n: int, seed: int | np.random.Generator, low: float, high: float) -> list[Task]:
+        """n tasks whose parameter is uniform in [low, high), a sub-range of `parameter_range`."""
+        check_parameter_range(self, (low, high))
+        rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+        return [self.validate_task(self.task_from_parameter(float(x))) for x in rng.uniform(low, high, size=n)]
+
     def most_different(self, task: Task, candidates: Sequence[Task]) -> int:
         """Index of the candidate farthest from `task` (App. C.2 distance; first on ties)."""
         return int(np.argmax([self.distance(task, c) for c in candidates]))
@@ -110,6 +130,83 @@ class TaskFamily(abc.ABC):
     def make_env(self, task: Task, noise: float | None = None, **kwargs: Any) -> gym.Env:
         """A time-limited (200 steps) env of this task with per-step noise eps."""
         return gym.make(self.env_id, task=self.validate_task(task), noise=self.validate_noise(noise), **kwargs)
+
+    def exact_returns(self, act, tasks: Sequence[Task], noise: float | None) -> np.ndarray | None:
+        """The expected return (per `return_unit`) of a deterministic policy `act(observations) ->
+        actions` in each task, computed exactly, or None where the family cannot (evaluate by rollouts).
+        `act=None` stands for the uniformly random policy."""
+        return None
+
+
+def check_parameter_range(family: TaskFamily, task_range) -> tuple[float, float]:
+    """A (low, high) sub-range of the family's task parameter, or TaskError saying why not."""
+    if family.parameter_range is None:
+        raise TaskError(f"{family.name}: its tasks ({family.task_space}) cannot be drawn from a range")
+    try:
+        low, high = (float(x) for x in task_range)
+    except (TypeError, ValueError) as err:
+        raise TaskError(f"{family.name}: task range {task_range!r} must be two numbers LOW HIGH") from err
+    lo, hi = family.parameter_range
+    if not (lo <= low < high <= hi):
+        raise TaskError(f"{family.name}: task range [{low:g}, {high:g}) must be a non-empty sub-range of "
+                        f"[{lo:g}, {hi:g}] ({family.task_space})")
+    return low, high
+
+
+@dataclass(frozen=True)
+class TaskSplit:
+    """Which tasks train and which test (Sec. 5.1: 20 + 20 drawn from one seed).
+
+    `n_train` / `n_test` change the counts (App. D.3 splits the same 40 tasks 10/30 or 30/10);
+    `train_range` / `test_range` draw each side uniformly from a sub-range of the family's task
+    parameter instead (Sec. 5.7: AntDir trains on [0, pi) and tests on [pi, 2 pi)).
+    """
+
+    n_train: int = 20
+    n_test: int = 20
+    train_range: tuple[float, float] | None = None
+    test_range: tuple[float, float] | None = None
+
+    @property
+    def is_default(self) -> bool:
+        return self == TaskSplit()
+
+    def checked(self, family: TaskFamily) -> TaskSplit:
+        """This split with ranges as float pairs, or TaskError (one line) for a bad one."""
+        for name in ("n_train", "n_test"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise TaskError(f"{name} must be an integer >= 1, got {value!r}")
+        if self.n_train < 2:
+            raise TaskError(f"n_train={self.n_train}: Eq. 9 needs at least 2 training tasks")
+        ranges = {name: None if getattr(self, name) is None else check_parameter_range(family, getattr(self, name))
+                  for name in ("train_range", "test_range")}
+        return TaskSplit(self.n_train, self.n_test, **ranges)
+
+    def draw(self, family: TaskFamily, seed: int) -> tuple[list[Task], list[Task]]:
+        """The training and test tasks, reproducibly from `seed` (the default split is
+        `family.split_tasks(seed)`, so existing collections keep their tasks)."""
+        split = self.checked(family)
+        if split.train_range is None and split.test_range is None:
+            return family.split_tasks(seed, split.n_train, split.n_test)
+        rng = np.random.default_rng(seed)
+        draw = lambda n, r: family.sample_tasks_in(n, rng, *r) if r else family.sample_tasks(n, rng)  # noqa: E731
+        return draw(split.n_train, split.train_range), draw(split.n_test, split.test_range)
+
+    def label(self) -> str:
+        """A suffix naming a non-default split in a collection's directory name ("" for the default)."""
+        parts = []
+        if (self.n_train, self.n_test) != (20, 20):
+            parts.append(f"tasks{self.n_train}x{self.n_test}")
+        for side, r in (("train", self.train_range), ("test", self.test_range)):
+            if r is not None:
+                parts.append(f"{side}{r[0]:.6g}to{r[1]:.6g}")
+        return "".join(f"-{p}" for p in parts)
+
+    def record(self) -> dict:
+        return {"n_train": self.n_train, "n_test": self.n_test,
+                "train_range": None if self.train_range is None else list(self.train_range),
+                "test_range": None if self.test_range is None else list(self.test_range)}
 
 
 def scalar_task(family: TaskFamily, task: Task, low: float, high: float, closed_high: bool = True) -> float:

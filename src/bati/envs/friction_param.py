@@ -53,6 +53,7 @@ class LogFrictionFamily(TaskFamily):
     default_noise = 1.0
     noise_meaning = "std of the Gaussian noise added to the log-friction at every step (friction and action map)"
     kind = "dynamics"
+    parameter_range = (-LOG_FRICTION_RANGE, LOG_FRICTION_RANGE)
 
     def _sample(self, n, rng):
         return [float(x) for x in rng.uniform(-LOG_FRICTION_RANGE, LOG_FRICTION_RANGE, size=n)]

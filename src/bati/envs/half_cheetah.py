@@ -23,6 +23,7 @@ class HalfCheetahVelFamily(TaskFamily):
     task_dim = 1
     default_noise = 1.0
     noise_meaning = "std of the Gaussian noise added to the target velocity at every step"
+    parameter_range = (0.0, 2.0)
 
     def _sample(self, n, rng):
         return [float(x) for x in rng.uniform(0.0, 2.0, size=n)]

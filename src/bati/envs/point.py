@@ -23,6 +23,10 @@ class PointGoalFamily(TaskFamily):
     task_dim = 2
     default_noise = 1.0
     noise_meaning = "std of the Gaussian noise added to the goal (both coordinates) at every step"
+    parameter_range = (0.0, math.pi)  # the goal's angle
+
+    def task_from_parameter(self, value):
+        return [float(np.cos(value)), float(np.sin(value))]
 
     def _sample(self, n, rng):
         angles = rng.uniform(0.0, math.pi, size=n)

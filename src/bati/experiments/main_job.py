@@ -38,8 +38,8 @@ class MainJobConfig:
 
 def resolve_methods(methods: tuple[str, ...]) -> list[str]:
     """The methods to run, in order; `all` stands for every method. Unknown names are an error up front."""
+    unknown = [m for m in dict.fromkeys(methods) if m != "all" and m not in METHODS]  # `all bogus` too
     names = list(METHODS) if "all" in methods else list(dict.fromkeys(methods))
-    unknown = [m for m in names if m not in METHODS]
     if unknown or not names:
         raise ValueError(f"unknown method(s) {', '.join(map(repr, unknown)) or '(none given)'}; "
                          f"choose from: {', '.join(METHODS)}, or all")

@@ -28,7 +28,7 @@ from typing import Any, Literal
 
 from bati.errors import BatiError
 from bati.io import atomic_write_json
-from bati.train import NOT_IDENTITY, TrainConfig
+from bati.train import LATER_FIELDS, NOT_IDENTITY, TrainConfig, differing_settings
 
 AXES = ("family", "method", "seed", "scale", "noise")
 """Grid axes; every other TrainConfig field can be set for all cells with `overrides`."""
@@ -95,8 +95,10 @@ class Cell:
 
 
 def config_digest(config: TrainConfig, exclude: Iterable[str] = ()) -> str:
-    """A short stable digest of a config's settings (JSON with sorted keys)."""
-    settings = {k: v for k, v in config_record(config).items() if k not in set(exclude)}
+    """A short stable digest of a config's settings (JSON with sorted keys). Fields added later
+    (LATER_FIELDS) count only when they differ from their old value, so older digests stay valid."""
+    settings = {k: v for k, v in config_record(config).items() if k not in set(exclude)
+                and not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
     return hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:10]
 
 
@@ -146,7 +148,7 @@ def is_done(cell: Cell) -> bool:
     except (OSError, ValueError, AttributeError):
         return False
     current = config_record(cell.config)
-    return all(saved.get(k) == v for k, v in current.items() if k not in NOT_IDENTITY)
+    return isinstance(saved, dict) and not differing_settings(saved, current, [k for k in current if k not in NOT_IDENTITY])
 
 
 # --- jobs ------------------------------------------------------------------------------------
@@ -190,11 +192,11 @@ def prepare_data(cells: list[Cell], progress: bool) -> None:
     workers only read data and never collect the same collection twice."""
     from bati.data.collect import collect
 
-    needed = {(c.family, c.scale, c.data_seed, c.noise, str(c.data_root), c.episodes_per_task, c.context_episodes)
-              for c in (cell.config for cell in cells)}
-    for family, scale, seed, noise, root, n_episodes, n_context in sorted(needed, key=str):
+    needed = {(c.family, c.scale, c.data_seed, c.noise, str(c.data_root), c.episodes_per_task, c.context_episodes,
+               c.task_split()) for c in (cell.config for cell in cells)}
+    for family, scale, seed, noise, root, n_episodes, n_context, tasks in sorted(needed, key=str):
         collect(family, scale, seed, noise, root, n_episodes=n_episodes, n_context_episodes=n_context,
-                progress=progress)
+                progress=progress, tasks=tasks)
 
 
 # --- the sweep -------------------------------------------------------------------------------
@@ -209,10 +211,12 @@ class SweepResult:
         return sum(s == status for s in self.status.values())
 
 
-def sweep(grid: Grid, out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
+def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
           backend: Literal["local", "ray"] = "local", address: str | None = None,
-          show_progress: bool = True) -> SweepResult:
-    """Run every cell of `grid` that is not finished yet; see the module docstring."""
+          show_progress: bool = True, status_file: str = "sweep.json") -> SweepResult:
+    """Run every cell of `grid` (or of several grids, e.g. an experiment's parts) that is not finished
+    yet; see the module docstring. `status_file` names the status record in `out_dir` (experiments
+    sharing one directory, and so their common cells, keep one each)."""
     start = time.perf_counter()
     out_dir = Path(out_dir)
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
@@ -220,7 +224,10 @@ def sweep(grid: Grid, out_dir: Path, *, data_root: Path = Path("data"), workers:
     if backend not in ("local", "ray"):
         raise SweepError(f"unknown backend {backend!r}; choose local or ray")
     check_out_dir(out_dir)
-    cells = expand(grid, out_dir, data_root)
+    grids = [grid] if isinstance(grid, Grid) else list(grid)
+    if not grids:
+        raise SweepError("no grid to sweep")
+    cells = list({c.id: c for g in grids for c in expand(g, out_dir, data_root)}.values())
     if backend == "ray":
         ray = connect_ray(address)
     status = {c.id: ("skipped" if is_done(c) else "pending") for c in cells}
@@ -229,8 +236,9 @@ def sweep(grid: Grid, out_dir: Path, *, data_root: Path = Path("data"), workers:
     jobs = make_jobs(pending)
 
     def record() -> None:
-        atomic_write_json(out_dir / "sweep.json", {
-            "grid": asdict(grid), "data_root": str(data_root), "backend": backend, "workers": workers,
+        atomic_write_json(out_dir / status_file, {
+            **({"grid": asdict(grids[0])} if len(grids) == 1 else {"grids": [asdict(g) for g in grids]}),
+            "data_root": str(data_root), "backend": backend, "workers": workers,
             "cells": {c.id: {"label": c.label, "run_dir": str(c.config.out_dir), "status": status[c.id],
                              **({"error": errors[c.id]} if c.id in errors else {})} for c in cells},
         })

@@ -1,5 +1,5 @@
 """Expert (context-collection) policies: a task-conditioned SAC per family."""
 
-from bati.experts.zoo import ExpertPolicy, load
+from bati.experts.zoo import Expert, ExpertPolicy, load
 
-__all__ = ["ExpertPolicy", "load"]
+__all__ = ["Expert", "ExpertPolicy", "load"]

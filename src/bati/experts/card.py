@@ -14,13 +14,13 @@ import numpy as np
 
 from bati.envs import get_family
 from bati.envs.rollout import Episodes, rollout
-from bati.experts.zoo import ZOO_DIR, ExpertPolicy, load
+from bati.experts.zoo import ZOO_DIR, Expert, load
 from bati.io import atomic_write_json, atomic_write_text, git_commit
 
 HALF_CHEETAH_CONTROL_COST = 0.05
 
 
-def expert_episodes(expert: ExpertPolicy, env_tasks, policy_tasks, noise, seed) -> Episodes:
+def expert_episodes(expert: Expert, env_tasks, policy_tasks, noise, seed) -> Episodes:
     """One deterministic episode per env task, acting as the expert for the matching policy task."""
     family = expert.family
     task_arrays = np.stack([family.task_to_array(t) for t in policy_tasks])
@@ -32,6 +32,9 @@ def expert_episodes(expert: ExpertPolicy, env_tasks, policy_tasks, noise, seed) 
 def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = None) -> dict:
     """Evaluate the expert of `family_name` and write card.json / card.md next to it."""
     family = get_family(family_name)
+    if family.discrete_actions:  # nothing shipped to describe: its values are exact (docs/environments.md)
+        raise ValueError(f"{family_name}'s expert is the exact best response, computed, not shipped: it has no "
+                         "card; its exact values per hand are bati.envs.kuhn.best_response_value")
     expert = load(family_name, zoo_dir)
     directory = Path(zoo_dir or ZOO_DIR) / family_name
     train, test = family.split_tasks(seed)

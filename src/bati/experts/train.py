@@ -55,7 +55,9 @@ class ExpertTrainConfig:
     sac: SACConfig = field(default_factory=SACConfig)
 
     def resolved(self) -> ExpertTrainConfig:
-        get_family(self.family)  # validate the name early
+        if get_family(self.family).discrete_actions:  # validates the name early, too
+            raise ValueError(f"{self.family}'s expert is the exact best response (bati.experts.kuhn), computed "
+                             "when needed: there is no SAC expert to train")
         total = self.total_steps or DEFAULT_STEPS[self.family]
         if total <= 0 or self.num_envs <= 0 or self.updates_per_step < 0:
             raise ValueError("total_steps and num_envs must be positive, updates_per_step >= 0")

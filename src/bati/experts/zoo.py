@@ -16,20 +16,16 @@ from bati.io import atomic_write_bytes, atomic_write_json
 ZOO_DIR = Path(__file__).parent / "zoo"
 
 
-class ExpertPolicy:
+class Expert:
     """A family's expert: `policy(obs, task)` -> action, batched or not.
 
     `task` is a task of the family (or a list of them for a batch of observations);
     `deterministic=False` samples from the policy with the given `key` (a jax PRNG key).
+    Subclasses give `act_from_arrays` (batched actions from task arrays) and `mean_action`.
     """
 
-    def __init__(self, family_name: str, actor_params: Any, meta: dict):
-        from bati.experts.sac import SAC, SACConfig
-
-        self.family = get_family(family_name)
-        self.meta = meta
-        self._sac = SAC(meta["obs_dim"], meta["task_dim"], meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
-        self.actor_params = actor_params
+    family: Any
+    meta: dict
 
     def task_arrays(self, task: Task | list[Task], batch: int | None) -> np.ndarray:
         """One task (broadcast over the batch) or one task per observation, as arrays."""
@@ -48,7 +44,25 @@ class ExpertPolicy:
         if not deterministic and key is None:
             raise ValueError("a stochastic expert action needs a PRNG key: policy(obs, task, deterministic=False, key=key)")
         key = jax.random.PRNGKey(0) if key is None else key
-        return np.asarray(self._sac.act(self.actor_params, obs, tasks, key, deterministic=deterministic))
+        return self.act_from_arrays(obs, tasks, deterministic, key)
+
+    def act_from_arrays(self, obs: np.ndarray, task_arrays: np.ndarray, deterministic: bool, key) -> np.ndarray:
+        raise NotImplementedError
+
+    def mean_action(self, obs: jax.Array, task_arrays: jax.Array) -> jax.Array:
+        raise NotImplementedError
+
+
+class ExpertPolicy(Expert):
+    """A trained task-conditioned SAC actor (the MuJoCo families and PointGoal)."""
+
+    def __init__(self, family_name: str, actor_params: Any, meta: dict):
+        from bati.experts.sac import SAC, SACConfig
+
+        self.family = get_family(family_name)
+        self.meta = meta
+        self._sac = SAC(meta["obs_dim"], meta["task_dim"], meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
+        self.actor_params = actor_params
 
     def mean_action(self, obs: jax.Array, task_arrays: jax.Array) -> jax.Array:
         """Deterministic actions as a jax function of arrays (usable inside a jitted training step)."""
@@ -65,12 +79,16 @@ def save_expert(directory: Path, family_name: str, actor_params: Any, meta: dict
 
 
 def load(family_name: str, zoo_dir: str | Path | None = None) -> ExpertPolicy:
-    """The shipped (or `zoo_dir`'s) expert of a family."""
+    """The shipped (or `zoo_dir`'s) expert of a family (KuhnPoker: exact best responses, nothing shipped)."""
     from bati.experts.sac import SAC, SACConfig
 
     directory = Path(zoo_dir or ZOO_DIR) / family_name
     meta_path = directory / "expert.json"
     get_family(family_name)  # unknown family -> TaskError
+    if family_name == "KuhnPoker":  # exact best responses, computed (bati.experts.kuhn): nothing to load
+        from bati.experts.kuhn import BestResponseExpert
+
+        return BestResponseExpert(family_name)
     if not meta_path.exists():
         raise FileNotFoundError(
             f"no expert for {family_name} in {directory}; train one with `bati experts train --family {family_name}`"

@@ -2,8 +2,8 @@
 
 Training: for a query state s of task M and the causal transformer's summary h_j of the first
 j transitions of a context of M (j uniform over the context), maximise the Gaussian likelihood
-of the action the expert for M takes at s. Our experts are task-conditioned, so they label any
-query state. Test time: h of the whole context is the latent, and the action is the predicted
+of the action the expert for M takes at s (discrete actions: the categorical likelihood of its
+one-hot action). Our experts are task-conditioned, so they label any query state. Test time: h of the whole context is the latent, and the action is the predicted
 mean at the current state: DPT is its own policy (no IQL).
 
 Deviation: the original DPT puts the query state in the sequence as a token; here the query
@@ -61,11 +61,11 @@ class DPT(TaskInference):
     acts_itself = True
 
     def __init__(self, spec: MethodSpec):
-        if spec.discrete_actions:
-            raise ValueError("DPT here predicts continuous actions (a Gaussian head); discrete actions are not supported")
         super().__init__(dataclasses.replace(spec, latent_dim=MODEL_DIM))
         self.transformer = CausalTransformer()
-        self.action_head = GaussianHead(spec.decoder_dims, spec.action_dim)
+        # discrete actions (one-hot, KuhnPoker): a categorical head over the action's logits
+        head = MLP if spec.discrete_actions else GaussianHead
+        self.action_head = head(spec.decoder_dims, spec.action_dim)
 
     def init(self, key):
         k_transformer, k_head = jax.random.split(key)
@@ -79,18 +79,28 @@ class DPT(TaskInference):
         mean, log_std = self.action_head.apply(params["action_head"], jnp.concatenate([z, obs], -1))
         return jnp.tanh(mean), log_std
 
+    def action_log_prob(self, params, obs, z, actions):
+        """log-likelihood of `actions` (one-hot for discrete actions) at obs given the summary z."""
+        if self.spec.discrete_actions:
+            logits = self.action_head.apply(params["action_head"], jnp.concatenate([z, obs], -1))
+            return jnp.sum(actions * jax.nn.log_softmax(logits), axis=-1)
+        mean, log_std = self.action_distribution(params, obs, z)
+        return gaussian_log_prob(actions, mean, log_std)
+
     def loss(self, params, batch, key):
         summaries = self.transformer.apply(params["transformer"], transition_tokens(batch["context"]))  # (T, C, d)
         queries = batch["observations"]  # (T, B, obs_dim): states of the task's own data
         prefix = jax.random.randint(key, queries.shape[:2], 0, summaries.shape[1])
         z = jnp.take_along_axis(summaries, prefix[..., None], axis=1)  # (T, B, d)
-        mean, log_std = self.action_distribution(params, queries, z)
-        nll = -gaussian_log_prob(batch["expert_actions"], mean, log_std).mean()
+        nll = -self.action_log_prob(params, queries, z, batch["expert_actions"]).mean()
         return nll, (summaries[:, -1], {"action_nll": nll})
 
     def infer(self, params, context, key):
         return self.transformer.apply(params["transformer"], transition_tokens(context))[..., -1, :]
 
     def act(self, params, obs, z):
-        """The predicted mean action at obs given the context summary z."""
+        """The predicted mean action at obs given the context summary z (discrete: the mode, one-hot)."""
+        if self.spec.discrete_actions:
+            logits = self.action_head.apply(params["action_head"], jnp.concatenate([z, obs], -1))
+            return jax.nn.one_hot(jnp.argmax(logits, -1), self.spec.action_dim)
         return self.action_distribution(params, obs, z)[0]

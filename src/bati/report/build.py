@@ -23,7 +23,7 @@ from bati.io import atomic_write_text
 from bati.report.runs import RunResult, find_eval_files, load_runs
 from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval
 from bati.report.curves import save_figure
-from bati.report.tables import METHOD_LABELS
+from bati.report.tables import METHOD_LABELS, return_digits
 
 # Methods that a probability of improvement is computed for (against every other method of the group).
 IMPROVERS = ("bati", "bati-r")
@@ -195,8 +195,9 @@ def group_description(group: Group) -> str:
     refs = group.references()
     if refs is not None:
         partial = "" if group.normalised else " (some runs lack them: no normalised scores)"
-        lines.append(f"References (test tasks, same eps): random policy {refs['random']:.1f}, "
-                     f"experts {refs['expert']:.1f}{partial}.")
+        d = return_digits(refs["random"], refs["expert"])
+        lines.append(f"References (test tasks, same eps): random policy {refs['random']:.{d}f}, "
+                     f"experts {refs['expert']:.{d}f}{partial}.")
     else:
         lines.append("References: not recorded (no normalised scores).")
     evals = sorted({r.evaluations_averaged for r in group.runs if r.evaluations_averaged is not None})
@@ -268,6 +269,7 @@ def table_markdown(group: Group, rows: list[dict], title: str) -> str:
                  if any(math.isfinite(r[f"p_{m.replace('-', '_')}_better"]) for r in rows)]
     has_iqm = any(math.isfinite(r["iqm_p_test"]) for r in rows)
     has_notes = any(r["notes"] for r in rows)
+    rd = return_digits(*(r[f"{s}_mean"] for r in rows for s in ("p_train", "p_test")))  # 3 for per-hand returns
     header = ["method", "seeds", "p_train return", "p_test return"]
     if norm:
         header += ["p_train normalised", "p_test normalised", "p_test / p_train (normalised)"]
@@ -284,8 +286,8 @@ def table_markdown(group: Group, rows: list[dict], title: str) -> str:
     for r in rows:
         n = r["n_seeds"]
         cells = [METHOD_LABELS.get(r["method"], r["method"]), ", ".join(map(str, r["seeds"])),
-                 _fmt_mean_std(r["p_train_mean"], r["p_train_std"], n, 1),
-                 _fmt_mean_std(r["p_test_mean"], r["p_test_std"], n, 1)]
+                 _fmt_mean_std(r["p_train_mean"], r["p_train_std"], n, rd),
+                 _fmt_mean_std(r["p_test_mean"], r["p_test_std"], n, rd)]
         if norm:
             cells += [_fmt_mean_std(r["p_train_normalised_mean"], r["p_train_normalised_std"], n, 2),
                       _fmt_mean_std(r["p_test_normalised_mean"], r["p_test_normalised_std"], n, 2),
@@ -296,7 +298,7 @@ def table_markdown(group: Group, rows: list[dict], title: str) -> str:
             cells.append(_fmt_mean_std(r[f"{source}_inference_error_mean"],
                                        r[f"{source}_inference_error_std"], n, 2))
         if has_iqm:
-            digits = 2 if norm else 1
+            digits = 2 if norm else rd
             cells.append("–" if not math.isfinite(r["iqm_p_test"]) else
                          f"{r['iqm_p_test']:.{digits}f} "
                          f"[{r['iqm_low']:.{digits}f}, {r['iqm_high']:.{digits}f}]")

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from bati.io import read_jsonl
 from bati.report.tables import METHOD_LABELS
 
 
@@ -20,7 +20,7 @@ def plot_learning_curves(run_dirs: dict[str, list[Path]], path: Path, title: str
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), sharey=True)
     for ax, source in zip(axes, ("p_test", "p_train")):
         for method, dirs in run_dirs.items():
-            curves = [[json.loads(line) for line in (d / "eval.jsonl").read_text().splitlines()] for d in dirs]
+            curves = [read_jsonl(d / "eval.jsonl", require=("step",)) for d in dirs]  # torn last line: dropped
             n = min(len(c) for c in curves)
             steps = [e["step"] for e in curves[0][:n]]
             values = np.array([[e[f"{source}_return"] for e in c[:n]] for c in curves])

@@ -8,10 +8,8 @@ term alone (BATI-R) and the state terms alone, plus how often the arg-min is the
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-import flax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,18 +17,21 @@ import numpy as np
 from bati.data import load_family_data, sample_contexts
 from bati.envs import get_family
 from bati.methods.dynamics import reconstruction_nll, transition_targets
-from bati.train import TrainConfig, Trainer
+from bati.train import TrainConfig, Trainer, load_checkpoint, read_run_config
 
 
 def likelihood_split(run_dir: Path, context_length: int = 200, seed: int = 0) -> dict:
-    saved = json.loads((run_dir / "config.json").read_text())
-    config = TrainConfig(**{k: saved[k] for k in ("family", "method", "seed", "scale", "noise", "data_seed")},
-                         data_root=Path(saved["data_root"])).resolved()
-    data = load_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root)
+    saved = read_run_config(run_dir)  # one-line errors: a file, no config.json, not a JSON object
+    config = TrainConfig.from_record(saved).resolved()
+    data = load_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
+                            tasks=config.task_split())
     trainer = Trainer(config, data)
     if not hasattr(trainer.method, "task_latents"):
         raise ValueError(f"{run_dir}: method {config.method!r} has no task table to score")
-    state = flax.serialization.from_bytes(trainer.init(jax.random.PRNGKey(0)), (run_dir / "checkpoint.msgpack").read_bytes())
+    checkpoint = run_dir / "checkpoint.msgpack"
+    if not checkpoint.is_file():
+        raise ValueError(f"{run_dir} has no checkpoint yet: train the run first")
+    state = load_checkpoint(checkpoint, trainer.init(jax.random.PRNGKey(0)))
     params, model = state.method, trainer.method.model
     table = trainer.method.task_latents(params)
     family = get_family(config.family)

@@ -5,10 +5,16 @@ from __future__ import annotations
 import numpy as np
 
 
-def mean_std(values: list[float]) -> str:
+def return_digits(*values: float) -> int:
+    """Decimals for returns: 3 when every |return| is below 5 (KuhnPoker's returns per hand), else 1."""
+    finite = [abs(float(v)) for v in values if v is not None and np.isfinite(v)]
+    return 3 if finite and max(finite) < 5 else 1
+
+
+def mean_std(values: list[float], digits: int = 1) -> str:
     if len(values) == 1:
-        return f"{values[0]:.1f}"
-    return f"{np.mean(values):.1f} ± {np.std(values):.1f}"
+        return f"{values[0]:.{digits}f}"
+    return f"{np.mean(values):.{digits}f} ± {np.std(values):.{digits}f}"
 
 
 # How a method is named in tables (its `--method` name otherwise).
@@ -19,11 +25,14 @@ def results_markdown(rows: list[dict], oracle: float | None, title: str) -> str:
     """rows: one per method with lists over seeds: p_train_return, p_test_return, *_inference_error."""
     lines = [f"### {title}", "", "| method | p_train contexts | p_test contexts | task-inference error (p_train / p_test) |",
              "| --- | --- | --- | --- |"]
+    d = return_digits(*([] if oracle is None else [oracle]),
+                      *(v for row in rows for k in ("p_train_return", "p_test_return") for v in row[k]))
     if oracle is not None:
-        lines.append(f"| Oracle (Pre-IQL, the experts) | {oracle:.1f} | {oracle:.1f} | – |")
+        lines.append(f"| Oracle (Pre-IQL, the experts) | {oracle:.{d}f} | {oracle:.{d}f} | – |")
     for row in rows:
         lines.append(
-            f"| {METHOD_LABELS.get(row['method'], row['method'])} | {mean_std(row['p_train_return'])} | {mean_std(row['p_test_return'])} | "
+            f"| {METHOD_LABELS.get(row['method'], row['method'])} | {mean_std(row['p_train_return'], d)} | "
+            f"{mean_std(row['p_test_return'], d)} | "
             f"{np.mean(row['p_train_inference_error']):.2f} / {np.mean(row['p_test_inference_error']):.2f} |"
         )
     return "\n".join(lines) + "\n"

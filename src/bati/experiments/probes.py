@@ -1,0 +1,124 @@
+"""Probes: evaluations of a finished run's final checkpoint under other test-time settings.
+
+Table 1 trains with contexts of C = 50 and evaluates the final checkpoints with C = 50, 200, 400;
+Fig. 6 evaluates them on interpolated contexts (a share r of p_test, the rest p_train). Neither
+needs retraining: a probe loads the run's config and final checkpoint, evaluates it `repeats` times
+(one lockstep rollout of repeats x n_test envs) and writes
+
+    <run>/probes/<name>.json          returns and inference errors per source (mean, std over repeats)
+    <run>/probes/<name>-latents.npz   the first repeat's inferred latents (t-SNE of Fig. 6)
+
+A probe that is already on disk for the same run step and settings is read back, not redone.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bati.errors import BatiError
+from bati.io import atomic_save_npz, atomic_write_json, git_commit
+
+
+class ProbeError(BatiError, ValueError):
+    """A probe that cannot run (no finished run, bad setting): nothing was written."""
+
+
+@dataclass(frozen=True)
+class Probe:
+    """Test-time settings that differ from the run's own evaluation."""
+
+    eval_context_length: int | None = None
+    """Transitions per context (default: the run's eval_context_length)."""
+    context_mix: float | None = None
+    """Share r of p_test transitions in an interpolated context (None: plain p_test and p_train)."""
+    repeats: int = 5
+    """Evaluations averaged (the runs' own numbers average their last 5)."""
+
+    @property
+    def name(self) -> str:
+        parts = []
+        if self.eval_context_length is not None:
+            parts.append(f"C{self.eval_context_length}")
+        if self.context_mix is not None:
+            parts.append(f"mix{self.context_mix:g}")
+        return "-".join(parts) or "final"
+
+    def check(self) -> Probe:
+        if self.eval_context_length is not None and (isinstance(self.eval_context_length, bool) or
+                                                     not isinstance(self.eval_context_length, int) or
+                                                     self.eval_context_length < 1):
+            raise ProbeError(f"eval_context_length must be an integer >= 1, got {self.eval_context_length!r}")
+        if self.context_mix is not None and not 0.0 <= float(self.context_mix) <= 1.0:
+            raise ProbeError(f"context_mix must be in [0, 1], got {self.context_mix!r}")
+        if isinstance(self.repeats, bool) or not isinstance(self.repeats, int) or self.repeats < 1:
+            raise ProbeError(f"repeats must be an integer >= 1, got {self.repeats!r}")
+        return self
+
+
+def probe_path(run_dir: Path, probe: Probe) -> Path:
+    return Path(run_dir) / "probes" / f"{probe.name}.json"
+
+
+def read_probe(run_dir: Path, probe: Probe) -> dict | None:
+    """The probe's saved result, None if it is missing, unreadable or for other settings."""
+    try:
+        saved = json.loads(probe_path(run_dir, probe).read_text())
+    except (OSError, ValueError):
+        return None
+    return saved if isinstance(saved, dict) and saved.get("probe") == asdict(probe) else None
+
+
+def run_probe(run_dir: Path, probe: Probe) -> dict:
+    """Evaluate the run's final checkpoint under `probe` (or read the saved result); see the module."""
+    from bati.data import load_family_data
+    from bati.evaluate import Evaluator
+    from bati.train import TrainConfig, Trainer, load_checkpoint
+
+    probe = probe.check()
+    run_dir = Path(run_dir)
+    try:
+        record = json.loads((run_dir / "config.json").read_text())
+        config = TrainConfig.from_record(record).resolved()
+    except (OSError, ValueError, TypeError) as err:
+        raise ProbeError(f"{run_dir} holds no readable run config ({err})") from err
+    saved = read_probe(run_dir, probe)
+    if saved is not None and saved.get("step") == config.steps:
+        return saved
+    start = time.perf_counter()
+    data = load_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
+                            tasks=config.task_split())
+    trainer = Trainer(config, data)
+    state = load_checkpoint(run_dir / "checkpoint.msgpack", trainer.init(jax.random.PRNGKey(0)))
+    if int(state.step) != config.steps:
+        raise ProbeError(f"{run_dir} is at step {int(state.step)} of {config.steps}: finish the run first")
+    length = probe.eval_context_length or config.eval_context_length
+    evaluator = Evaluator(trainer.method, trainer.iql, data, length, probe.context_mix)
+    k = probe.repeats
+    states = jax.tree_util.tree_map(lambda x: jnp.stack([jnp.asarray(x)] * k), state)
+    base = jax.random.fold_in(jax.random.PRNGKey(config.seed), 0x9B0E)
+    keys = jnp.stack([jax.random.fold_in(base, i) for i in range(k)])
+    results = evaluator.evaluate_runs(states, keys, [50_000 + 1000 * i + config.seed for i in range(k)])
+    out = {"probe": asdict(probe), "run_dir": str(run_dir), "family": config.family, "method": config.method,
+           "seed": config.seed, "step": config.steps, "context_length": length}
+    for source in evaluator.sources:
+        returns = np.array([r.returns[source].mean() for r in results])
+        errors = np.array([np.nanmean(r.inference_errors[source]) if np.isfinite(r.inference_errors[source]).any()
+                           else np.nan for r in results])
+        out[f"{source}_return"] = float(returns.mean())
+        out[f"{source}_return_std"] = float(returns.std())
+        out[f"{source}_returns"] = returns.round(3).tolist()
+        out[f"{source}_inference_error"] = float(errors.mean())
+    out.update(train_tasks=data.train_tasks, test_tasks=data.test_tasks, commit=git_commit(),
+               wall_time_s=round(time.perf_counter() - start, 2))
+    path = probe_path(run_dir, probe)
+    atomic_save_npz(path.with_name(f"{probe.name}-latents.npz"),
+                    **{name: np.asarray(z) for name, z in results[0].latents.items()})
+    atomic_write_json(path, out)
+    return out

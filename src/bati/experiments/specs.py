@@ -1,0 +1,283 @@
+"""The paper's experiments as named specs: `bati experiment NAME --scale quick|paper`.
+
+A spec is one or more sweep grids (its parts), the probes run on their finished cells (evaluations
+of the final checkpoints under other test-time settings, e.g. Table 1's context lengths), the table
+it reports (rows x columns of a record key) and the paper's own numbers for that table, typed once
+here with the table or figure they come from. `run_experiment` expands the spec, runs what is not
+finished yet (a `bati sweep` of all its cells: resumable, idempotent) and its probes; the report is
+`bati.report.experiment`. Experiments share one results directory per scale (`default_out_dir`):
+a cell two specs have in common is trained once.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from bati.errors import BatiError
+from bati.experiments.probes import Probe, run_probe
+from bati.experiments.sweep import Cell, Grid, SweepResult, expand, sweep
+from bati.train import check_seeds
+
+SCALES = ("quick", "paper")
+MUJOCO = ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")
+MAIN_METHODS = ("bati", "bati-r", "recon", "focal", "unicorn", "csro", "dpt", "oracle", "no-context")
+# The methods of the paper's ablation tables (Tables 1, 2, 5 and Figs. 5, 7), and our reward-only BATI.
+ABLATION_METHODS = ("bati", "bati-r", "csro", "focal", "recon", "unicorn")
+DEFAULT_SEEDS = {"quick": (0,), "paper": (0, 1, 2, 3, 4)}
+
+
+class ExperimentError(BatiError, ValueError):
+    """An experiment that cannot start (unknown name or scale, contradictory overrides): nothing written."""
+
+
+@dataclass(frozen=True)
+class Part:
+    """One sweep grid of a spec (scale and seeds are the experiment's), with the probes of its cells."""
+
+    families: tuple[str, ...]
+    methods: tuple[str, ...]
+    noises: tuple[float, ...] = ()
+    settings: tuple[str, ...] = ()
+    probes: tuple[Probe, ...] = ()
+
+
+@dataclass(frozen=True)
+class PaperTable:
+    """Numbers the paper reports, as printed: values[row][column] (e.g. "46.4 ± 2.9")."""
+
+    source: str
+    values: dict[str, dict[str, str]]
+
+
+@dataclass(frozen=True)
+class Spec:
+    name: str
+    title: str
+    claim: str
+    """What the paper concludes from it (the verdict in docs/results.md checks this)."""
+    parts: tuple[Part, ...]
+    rows: str = "method"
+    columns: str = "family"
+    """Record keys of the table: method, family, noise, split, context_length, context_mix."""
+    metric: str = "p_test_return"
+    paper: PaperTable | None = None
+    figures: tuple[str, ...] = ("curves",)
+    """curves: learning curves (p_test, p_train); vs: final metric against the column key; tsne."""
+    scales: tuple[str, ...] = SCALES
+
+
+def _settings(**values) -> tuple[str, ...]:
+    return tuple(f"{k}={json.dumps(v)}" for k, v in values.items())
+
+
+PI = math.pi
+SPECS: dict[str, Spec] = {s.name: s for s in (
+    Spec(
+        name="main",
+        title="Table 4 with Fig. 4 (p_test) and Fig. 8 (p_train): every method on the five MuJoCo families",
+        claim="BATI has the best p_test return on every family, usually by a large margin; encoders drop on p_test",
+        parts=(Part(MUJOCO, MAIN_METHODS),),
+        paper=PaperTable("Table 4", {
+            "oracle": {"AntDir": "58.7", "HalfCheetahVel": "-139.3", "HalfCheetahDir": "291.2",
+                       "HopperParam": "290.2", "WalkerParam": "549.2"},
+            "bati": {"AntDir": "46.4 ± 2.9", "HalfCheetahVel": "-122.8 ± 1.6", "HalfCheetahDir": "286.1 ± 13.8",
+                     "HopperParam": "285.9 ± 5.5", "WalkerParam": "565.2 ± 7.9"},
+            "csro": {"AntDir": "28.9 ± 3.0", "HalfCheetahVel": "-134.8 ± 8.9", "HalfCheetahDir": "-340.0 ± 17.2",
+                     "HopperParam": "144.4 ± 21.3", "WalkerParam": "279.5 ± 34.0"},
+            "focal": {"AntDir": "-46.5 ± 2.2", "HalfCheetahVel": "-279.4 ± 9.4", "HalfCheetahDir": "-336.4 ± 8.5",
+                      "HopperParam": "162.6 ± 44.5", "WalkerParam": "317.0 ± 37.0"},
+            "recon": {"AntDir": "-18.3 ± 13.7", "HalfCheetahVel": "-201.8 ± 7.4", "HalfCheetahDir": "127.1 ± 258.5",
+                      "HopperParam": "157.8 ± 16.7", "WalkerParam": "292.6 ± 38.4"},
+            "unicorn": {"AntDir": "-32.0 ± 4.2", "HalfCheetahVel": "-267.3 ± 20.5",
+                        "HalfCheetahDir": "-362.9 ± 6.8", "HopperParam": "144.7 ± 21.4",
+                        "WalkerParam": "319.0 ± 11.5"},
+        }),
+    ),
+    Spec(
+        name="noise",
+        title="Noise ablation (Fig. 5, 7 on p_test; Fig. 9, 10 on p_train): AntDir and HalfCheetahDir at three eps",
+        claim="as eps grows the baselines' p_test returns fall (flat or decreasing curves) while BATI's hold",
+        parts=(Part(("AntDir",), ABLATION_METHODS, noises=(0.0, 0.5, 1.0)),
+               Part(("HalfCheetahDir",), ABLATION_METHODS, noises=(0.0, 0.4, 0.8))),
+        columns="family_noise",
+        figures=("curves", "vs"),
+    ),
+    Spec(
+        name="context-length",
+        title="Table 1: HalfCheetahDir, eps = 0.9, trained with contexts of C = 50, evaluated with C = 50, 200, 400",
+        claim="BATI improves with longer contexts (-4.7 -> 1.8 -> 4.7); the baselines do not",
+        parts=(Part(("HalfCheetahDir",), ABLATION_METHODS, noises=(0.9,), settings=_settings(context_length=50),
+                    probes=tuple(Probe(eval_context_length=c) for c in (50, 200, 400))),),
+        columns="context_length",
+        paper=PaperTable("Table 1", {
+            "bati": {"50": "-4.7 ± 1.2", "200": "1.8 ± 0.5", "400": "4.7 ± 1.5"},
+            "csro": {"50": "-23.8 ± 1.0", "200": "-24.7 ± 0.7", "400": "-25.3 ± 1.1"},
+            "focal": {"50": "-25.2 ± 0.2", "200": "-25.6 ± 0.3", "400": "-26.6 ± 0.2"},
+            "recon": {"50": "-11.4 ± 0.2", "200": "-12.2 ± 0.3", "400": "-12.0 ± 0.2"},
+            "unicorn": {"50": "-22.8 ± 2.3", "200": "-24.0 ± 1.9", "400": "-24.8 ± 2.4"},
+        }),
+        figures=("vs",),
+    ),
+    Spec(
+        name="ood-tasks",
+        title="Table 2: AntDir trained on directions in [0, pi), tested on [pi, 2 pi) (OOD tasks and contexts)",
+        claim="BATI is the only method with a positive return (12.1 ± 0.5)",
+        parts=(Part(("AntDir",), ABLATION_METHODS,
+                    settings=_settings(train_task_range=[0.0, PI], test_task_range=[PI, 2 * PI])),),
+        columns="family",
+        paper=PaperTable("Table 2", {
+            "bati": {"AntDir": "12.1 ± 0.5"}, "csro": {"AntDir": "-45.8 ± 14.5"},
+            "focal": {"AntDir": "-74.7 ± 6.1"}, "recon": {"AntDir": "-51.8 ± 37.0"},
+            "unicorn": {"AntDir": "-104.6 ± 9.1"},
+        }),
+    ),
+    Spec(
+        name="splits",
+        title="Table 5: AntDir's 40 tasks split 10/30, 20/20, 30/10 between training and test",
+        claim="BATI is best and stable across the splits",
+        parts=tuple(Part(("AntDir",), ABLATION_METHODS, settings=_settings(n_train_tasks=n, n_test_tasks=40 - n))
+                    for n in (10, 20, 30)),
+        columns="split",
+        paper=PaperTable("Table 5", {
+            "bati": {"10/30": "45.0 ± 6.0", "20/20": "46.4 ± 2.9", "30/10": "49.9 ± 4.6"},
+            "csro": {"10/30": "4.7 ± 4.2", "20/20": "28.9 ± 3.0", "30/10": "46.2 ± 4.8"},
+            "focal": {"10/30": "-33.2 ± 3.4", "20/20": "-46.5 ± 2.2", "30/10": "-33.9 ± 1.4"},
+            "recon": {"10/30": "-6.7 ± 2.8", "20/20": "-18.3 ± 13.7", "30/10": "-4.3 ± 5.0"},
+            "unicorn": {"10/30": "-22.2 ± 2.5", "20/20": "-32.0 ± 4.2", "30/10": "-9.4 ± 7.6"},
+        }),
+        figures=("vs",),
+    ),
+    Spec(
+        name="interpolated-contexts",
+        title="Fig. 6: HalfCheetahVel, contexts of N steps with N r from p_test and N (1 - r) from p_train",
+        claim="Recon's latents drift towards the spurious task and its return drops as r grows; BATI's stay put",
+        parts=(Part(("HalfCheetahVel",), ("bati", "bati-r", "recon"),
+                    probes=tuple(Probe(context_mix=r) for r in (0.0, 0.25, 0.5, 0.75, 1.0))),),
+        columns="context_mix",
+        metric="mixed_return",
+        figures=("vs", "tsne"),
+    ),
+    Spec(
+        name="noiseless-hopper",
+        title="Fig. 4f: HopperParam without noise (eps = 0)",
+        claim="without noise the baselines still fall short of BATI (UNICORN gains a little)",
+        parts=(Part(("HopperParam",), MAIN_METHODS, noises=(0.0,)),),
+    ),
+)}
+
+
+def get_spec(name: str) -> Spec:
+    if name not in SPECS:
+        raise ExperimentError(f"unknown experiment {name!r}; choose one of: {', '.join(SPECS)} (bati experiment list)")
+    return SPECS[name]
+
+
+@dataclass
+class Plan:
+    """A spec made concrete for a scale, seeds and overrides: its grids and cells."""
+
+    spec: Spec
+    scale: str
+    seeds: tuple[int, ...]
+    grids: list[Grid]
+    cells: list[Cell]
+    probes: dict[str, tuple[Probe, ...]] = field(default_factory=dict)  # cell id -> its probes
+
+
+def plan_experiment(spec: Spec, scale: str, out_dir: Path, *, seeds: tuple[int, ...] | None = None,
+                    settings: tuple[str, ...] = (), methods: tuple[str, ...] = (), families: tuple[str, ...] = (),
+                    data_root: Path = Path("data")) -> Plan:
+    """Expand `spec` at `scale`. `settings` (KEY=VALUE) apply to every cell but may not change what the
+    spec itself sets; `methods` / `families` keep a subset of the spec's. ExperimentError otherwise."""
+    if scale not in spec.scales:
+        raise ExperimentError(f"experiment {spec.name!r} has no {scale!r} scale; choose one of: {', '.join(spec.scales)}")
+    try:
+        seeds = check_seeds(DEFAULT_SEEDS[scale] if seeds is None else seeds)
+    except ValueError as err:
+        raise ExperimentError(str(err)) from err
+    own = {s.partition("=")[0].strip().replace("-", "_") for part in spec.parts for s in part.settings}
+    clash = sorted(own & {s.partition("=")[0].strip().replace("-", "_") for s in settings})
+    if clash:
+        raise ExperimentError(f"experiment {spec.name!r} sets {', '.join(clash)} itself; leave it out of --settings")
+    spec_methods = {m for p in spec.parts for m in p.methods}
+    spec_families = {f for p in spec.parts for f in p.families}
+    for kind, chosen, allowed in (("method", methods, spec_methods), ("family", families, spec_families)):
+        extra = [x for x in chosen if x not in allowed]
+        if extra:
+            raise ExperimentError(f"experiment {spec.name!r} has no {kind} {', '.join(map(repr, extra))}; "
+                                  f"its {kind} choices: {', '.join(sorted(allowed))}")
+    grids, cells, probes = [], [], {}
+    for part in spec.parts:
+        keep_methods = tuple(m for m in part.methods if not methods or m in methods)
+        keep_families = tuple(f for f in part.families if not families or f in families)
+        if not keep_methods or not keep_families:
+            continue
+        grid = Grid(families=keep_families, methods=keep_methods, seeds=seeds, noises=part.noises, scales=(scale,),
+                    settings=part.settings + tuple(settings))
+        grids.append(grid)
+        for cell in expand(grid, out_dir, data_root):
+            if cell.id not in probes:
+                cells.append(cell)
+            probes[cell.id] = tuple(dict.fromkeys(probes.get(cell.id, ()) + part.probes))
+    return Plan(spec, scale, seeds, grids, cells, probes)
+
+
+@dataclass
+class ExperimentResult:
+    plan: Plan
+    sweep: SweepResult
+    probes_done: int
+    probe_errors: dict[str, str]
+    wall_time_s: float
+
+
+def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
+                   backend: str = "local", address: str | None = None, show_progress: bool = True,
+                   on_probe: Callable[[str], None] | None = None) -> ExperimentResult:
+    """Run the plan's cells that are not finished (one sweep), then the probes of the finished ones."""
+    start = time.perf_counter()
+    result = sweep(plan.grids, out_dir, data_root=data_root, workers=workers, backend=backend, address=address,
+                   show_progress=show_progress, status_file=status_file(plan.spec))
+    done, errors = 0, {}
+    for cell in plan.cells:
+        if result.status.get(cell.id) not in ("done", "skipped"):
+            continue
+        for probe in plan.probes.get(cell.id, ()):
+            label = f"{cell.label} {probe.name}"
+            if on_probe is not None:
+                on_probe(label)
+            try:
+                run_probe(cell.config.out_dir, probe)
+                done += 1
+            except Exception as err:  # a failed probe is reported; the others go on
+                errors[label] = f"{type(err).__name__}: {err}"
+    return ExperimentResult(plan, result, done, errors, time.perf_counter() - start)
+
+
+def status_file(spec: Spec) -> str:
+    """The experiment's sweep record in the shared results directory."""
+    return f"{spec.name}.sweep.json"
+
+
+def default_out_dir(scale: str) -> Path:
+    """Where experiments keep their runs: one directory per scale, so cells two experiments share (main's
+    AntDir runs are the 20/20 split and the default-noise runs of `noise`) are trained once."""
+    return Path("results") / scale / "experiments"
+
+
+def describe(spec: Spec, scale: str = "quick") -> dict:
+    """A spec's summary for `bati experiment list` (cell counts at its default seeds)."""
+    seeds = DEFAULT_SEEDS[scale]
+    n_cells = 0
+    for part in spec.parts:
+        n_cells += len(part.families) * len(part.methods) * max(1, len(part.noises)) * len(seeds)
+    n_probes = sum(len(p.families) * len(p.methods) * max(1, len(p.noises)) * len(seeds) * len(p.probes)
+                   for p in spec.parts)
+    return {"name": spec.name, "title": spec.title, "cells": n_cells, "probes": n_probes, "seeds": len(seeds),
+            "paper": spec.paper.source if spec.paper else "figures only"}
+

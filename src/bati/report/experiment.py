@@ -1,0 +1,254 @@
+"""An experiment's report: its table beside the paper's numbers, and its figures, from result files only.
+
+Records come from the plan's cells: a run's eval.json (mean of its last 5 evaluations) or, for a
+spec with probes, each probe's JSON (mean of its repeated evaluations of the final checkpoint). A
+table cell is the mean ± std over seeds (std is shown from 2 seeds on), with the paper's value beside
+it. Writes `<out>/report.md`, `<out>/table.csv` and the spec's figures:
+
+- curves: p_test and p_train learning curves per setting (the paper's Fig. 4 / 8 layout);
+- vs: the final metric against the table's column key, one panel per family;
+- tsne: t-SNE of the latents inferred from interpolated contexts (Fig. 6).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from bati.experiments.probes import probe_path, read_probe
+from bati.experiments.specs import Plan, Spec
+from bati.io import atomic_write_text
+from bati.report.build import _csv_text, group_runs, method_order, plot_group
+from bati.report.curves import save_figure
+from bati.report.runs import RunResult
+from bati.report.tables import METHOD_LABELS
+
+CSV_FIELDS = ("row", "column", "n_seeds", "seeds", "mean", "std", "paper")
+
+
+def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
+    """One record per finished cell (or per finished probe of a cell), and the finished runs."""
+    records, runs = [], []
+    for cell in plan.cells:
+        c = cell.config
+        try:
+            raw = json.loads((c.out_dir / "eval.json").read_text())
+            run = RunResult.from_dict(raw, c.out_dir / "eval.json")
+        except (OSError, ValueError, TypeError, AttributeError):
+            continue
+        runs.append(run)
+        base = {"method": c.method, "family": c.family, "seed": c.seed, "noise": f"{c.noise:g}",
+                "family_noise": f"{c.family} eps={c.noise:g}", "split": f"{c.n_train_tasks}/{c.n_test_tasks}",
+                "context_length": str(c.eval_context_length), "commit": run.commit, "device": run.device,
+                "wall_time_s": run.wall_time_s}
+        probes = plan.probes.get(cell.id, ())
+        if not probes:
+            records.append({**base, "p_test_return": run.p_test_return, "p_train_return": run.p_train_return,
+                            "p_test_inference_error": run.p_test_inference_error})
+            continue
+        for probe in probes:
+            saved = read_probe(c.out_dir, probe)
+            if saved is None:
+                continue
+            records.append({**base, **{k: v for k, v in saved.items() if k.endswith(("_return", "_inference_error"))},
+                            "context_length": str(saved["context_length"]),
+                            "context_mix": "" if probe.context_mix is None else f"{probe.context_mix:g}",
+                            "probe": probe.name, "wall_time_s": saved.get("wall_time_s")})
+    return records, runs
+
+
+def _sort_key(value: str):
+    try:
+        return (0, float(value.split("/")[0]), value)
+    except ValueError:
+        return (1, 0.0, value)
+
+
+def table_rows(spec: Spec, records: list[dict], metric: str) -> tuple[list[str], list[str], list[dict]]:
+    """Rows, columns and one entry per (row, column): mean, std and seeds of `metric`, paper value."""
+    rows = sorted({r[spec.rows] for r in records}, key=method_order if spec.rows == "method" else _sort_key)
+    columns = sorted({r[spec.columns] for r in records}, key=_sort_key)
+    paper = spec.paper.values if spec.paper and metric == spec.metric else {}
+    entries = []
+    for row in rows:
+        for column in columns:
+            chosen = [r for r in records if r[spec.rows] == row and r[spec.columns] == column
+                      and r.get(metric) is not None and math.isfinite(r[metric])]
+            values = [r[metric] for r in chosen]
+            entries.append({"row": row, "column": column, "n_seeds": len(values),
+                            "seeds": " ".join(str(r["seed"]) for r in chosen),
+                            "mean": float(np.mean(values)) if values else math.nan,
+                            "std": float(np.std(values)) if values else math.nan,
+                            "paper": paper.get(row, {}).get(column, "")})
+    return rows, columns, entries
+
+
+def _fmt(entry: dict) -> str:
+    if not entry["n_seeds"]:
+        return "–"
+    text = f"{entry['mean']:.1f}"
+    return text + (f" ± {entry['std']:.1f}" if entry["n_seeds"] > 1 else "")
+
+
+def table_markdown(spec: Spec, metric: str, rows, columns, entries, title: str) -> str:
+    with_paper = any(e["paper"] for e in entries)
+    head = [spec.rows] + [f"{c} (ours{' / paper' if with_paper else ''})" for c in columns]
+    lines = [f"**{title}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lookup = {(e["row"], e["column"]): e for e in entries}
+    for row in rows:
+        cells = []
+        for column in columns:
+            e = lookup[(row, column)]
+            cells.append(_fmt(e) + (f" / {e['paper']}" if with_paper and e["paper"] else ""))
+        label = METHOD_LABELS.get(row, row) if spec.rows == "method" else row
+        lines.append("| " + " | ".join([label] + cells) + " |")
+    paper_only = sorted({row for row in (spec.paper.values if spec.paper and metric == spec.metric else {})}
+                        - set(rows))
+    if paper_only:
+        lines.append("")
+        lines.append("Paper rows without a run here: " + ", ".join(
+            f"{r} ({'; '.join(f'{c}: {v}' for c, v in spec.paper.values[r].items())})" for r in paper_only) + ".")
+    return "\n".join(lines) + "\n"
+
+
+def plot_vs(spec: Spec, records: list[dict], metric: str, path: Path) -> bool:
+    """The final metric against the column key (numeric), one line per row (method), one panel per family."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    families = sorted({r["family"] for r in records})
+    if not families:
+        return False
+    fig, axes = plt.subplots(1, len(families), figsize=(5.5 * len(families), 4), squeeze=False)
+    for ax, family in zip(axes[0], families):
+        subset = [r for r in records if r["family"] == family]
+        rows, columns, entries = table_rows(spec, subset, metric)
+        xs = [_sort_key(c)[1] for c in columns]
+        for row in rows:
+            points = [(x, e) for x, c in zip(xs, columns)
+                      for e in entries if e["row"] == row and e["column"] == c and e["n_seeds"]]
+            if not points:
+                continue
+            x = [p[0] for p in points]
+            (line,) = ax.plot(x, [p[1]["mean"] for p in points], marker="o",
+                              label=METHOD_LABELS.get(row, row) if spec.rows == "method" else row)
+            ax.errorbar(x, [p[1]["mean"] for p in points], yerr=[p[1]["std"] for p in points], fmt="none",
+                        ecolor=line.get_color(), alpha=0.5)
+        ax.set_xlabel(spec.columns.replace("family_noise", "eps").replace("_", " "))
+        ax.set_ylabel(metric.replace("_", " "))
+        ax.set_title(family)
+        ax.grid(alpha=0.3)
+    axes[0][-1].legend(fontsize="small")
+    fig.suptitle(spec.title, fontsize="small")
+    fig.tight_layout()
+    save_figure(fig, path, dpi=110)
+    return True
+
+
+def plot_tsne(plan: Plan, path: Path, methods=("bati", "recon"), paths_for: int = 3) -> bool:
+    """Fig. 6: t-SNE of each method's latents (first seed): the test tasks' latents from every mixing ratio
+    and the training table, coloured by task; the first `paths_for` tasks' latents joined over r."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from sklearn.manifold import TSNE
+
+    panels = []
+    for method in methods:
+        cell = next((c for c in plan.cells if c.config.method == method and plan.probes.get(c.id)), None)
+        if cell is None:
+            continue
+        probes = sorted((p for p in plan.probes[cell.id] if p.context_mix is not None), key=lambda p: p.context_mix)
+        latents, mixes, tasks = [], [], None
+        for probe in probes:
+            saved = read_probe(cell.config.out_dir, probe)
+            file = probe_path(cell.config.out_dir, probe).with_name(f"{probe.name}-latents.npz")
+            if saved is None or not file.exists():
+                continue
+            with np.load(file) as arrays:
+                latents.append(arrays["mixed"])
+                reference = arrays["reference"]
+            mixes.append(probe.context_mix)
+            tasks = saved["test_tasks"], saved["train_tasks"]
+        if latents and latents[0].shape[-1] > 0:
+            panels.append((method, np.stack(latents), mixes, reference, tasks))
+    if not panels:
+        return False
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 5), squeeze=False)
+    for ax, (method, latents, mixes, reference, (test_tasks, train_tasks)) in zip(axes[0], panels):
+        n_mix, n_test, dim = latents.shape
+        points = np.concatenate([latents.reshape(-1, dim), reference])
+        embedded = TSNE(n_components=2, perplexity=min(30.0, (len(points) - 1) / 3), init="pca",
+                        random_state=0).fit_transform(points)
+        mixed, table = embedded[: n_mix * n_test].reshape(n_mix, n_test, 2), embedded[n_mix * n_test:]
+        colour = lambda tasks: np.asarray(tasks, float).reshape(len(tasks), -1)[:, 0]  # noqa: E731
+        ax.scatter(table[:, 0], table[:, 1], c=colour(train_tasks), cmap="viridis", marker="s", s=30,
+                   label="training table / reference")
+        first = mixed[0]
+        sc = ax.scatter(first[:, 0], first[:, 1], c=colour(test_tasks), cmap="viridis", s=25,
+                        label=f"test tasks, r = {mixes[0]:g}")
+        for task in range(min(paths_for, n_test)):
+            path_points = mixed[:, task]
+            ax.plot(path_points[:, 0], path_points[:, 1], color="tab:blue", linewidth=1)
+            ax.scatter(path_points[1:, 0], path_points[1:, 1], color="black", s=12)
+        fig.colorbar(sc, ax=ax, label="task (target velocity)")
+        ax.set_title(f"{METHOD_LABELS.get(method, method)}: r = {', '.join(f'{m:g}' for m in mixes)}")
+        ax.legend(fontsize="x-small", loc="best")
+    fig.suptitle("t-SNE of inferred latents (as the paper's Fig. 6)", fontsize="small")
+    fig.tight_layout()
+    save_figure(fig, path, dpi=110)
+    return True
+
+
+def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
+    """Write the experiment's report.md, table.csv and figures into out_dir; see the module docstring."""
+    spec = plan.spec
+    records, runs = cell_records(plan)
+    out_dir = Path(out_dir)
+    metrics = [spec.metric] + (["p_train_return"] if spec.metric == "p_test_return" else [])
+    sections, csv_rows, files = [], [], []
+    for metric in metrics:
+        rows, columns, entries = table_rows(spec, records, metric)
+        if not entries:
+            continue
+        source = f" (paper: {spec.paper.source})" if spec.paper and metric == spec.metric else ""
+        sections.append(table_markdown(spec, metric, rows, columns, entries, f"{metric.replace('_', ' ')}{source}"))
+        csv_rows += [{**e, "row": e["row"], "column": e["column"], "metric": metric} for e in entries]
+    figures = []
+    if "vs" in spec.figures and plot_vs(spec, records, spec.metric, out_dir / "vs.png"):
+        figures.append("vs.png")
+    if "tsne" in spec.figures and plot_tsne(plan, out_dir / "tsne.png"):
+        figures.append("tsne.png")
+    if "curves" in spec.figures:
+        for group in group_runs(runs):
+            name = f"curves-{group.slug}.png"
+            if plot_group(group, out_dir / name, f"{spec.name}: {group.slug}", "return"):
+                figures.append(name)
+    commits = sorted({r["commit"] for r in records if r.get("commit")})
+    devices = sorted({r["device"] for r in records if r.get("device")})
+    train_wall = sum(run.wall_time_s or 0.0 for run in runs)
+    n_done = len(runs)
+    header = [
+        f"# Experiment `{spec.name}` ({plan.scale} scale)", "", spec.title + ".", "",
+        f"Paper's claim: {spec.claim}.", "",
+        f"- command: `{command}`" if command else "",
+        f"- cells finished: {n_done} of {len(plan.cells)}; seeds {list(plan.seeds)}",
+        f"- commit(s): {', '.join(c[:12] for c in commits) or 'unknown'}; device(s): {', '.join(devices) or 'unknown'}",
+        f"- summed wall time of the finished training jobs: {train_wall / 60:.1f} min (vmapped seeds share a job's time)",
+        "- numbers: mean over seeds (± std from 2 seeds on) of each run's mean of its last 5 evaluations"
+        + ("; probes: mean of 5 evaluations of the final checkpoint" if plan.probes and any(plan.probes.values())
+           else ""),
+        "",
+    ]
+    markdown = "\n".join(line for line in header if line is not None) + "\n" + "\n".join(sections)
+    markdown += "".join(f"\n![{name}]({name})\n" for name in figures)
+    atomic_write_text(out_dir / "report.md", markdown)
+    atomic_write_text(out_dir / "table.csv", _csv_text(("metric",) + CSV_FIELDS, csv_rows))
+    files = [out_dir / "report.md", out_dir / "table.csv"] + [out_dir / f for f in figures]
+    return {"markdown": markdown, "files": files, "records": records, "cells_done": n_done}

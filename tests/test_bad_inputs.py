@@ -1,0 +1,612 @@
+"""A catalogue of bad inputs and faults a user meets, each through the CLI (in-process, `bati.cli.main`).
+
+Every case asserts its exit code, that stderr holds exactly one line (an `error:` naming what is wrong, or
+a `warning:` for what was repaired), and that no file under the test's directory was written, lost or
+changed beyond what the case allows (byte for byte, directories included). The world every case starts
+from: a tiny PointGoal collection (2 episodes per training task, 1 per context dataset) and a finished
+`bati train --steps 5` run on it, both copied into the case's own directory. docs/reliability.md holds
+the same catalogue as a table.
+
+Below the catalogue: locks across processes, and kill -9 at random points of a training run and of a
+collection (slow) followed by a resume, which must give what an uninterrupted run gives.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import flax
+import numpy as np
+import pytest
+
+from bati.cli import main
+from bati.data import collect as collect_mod
+from bati.data import store
+from bati.data.batch import load_family_data
+from bati.io import LOCK_NAME, hold_lock
+
+FAMILY = "PointGoal"
+TINY = {"n_episodes": 2, "n_context_episodes": 1}
+COLLECTION = "PointGoal/quick-seed0-eps1"
+
+
+@pytest.fixture(autouse=True)
+def tiny_scale(monkeypatch):
+    """`--scale quick` means the tiny sizes here (the CLI has no size options)."""
+    monkeypatch.setitem(collect_mod.SCALES, "quick", dict(TINY))
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory):
+    """The tiny collection (with its array cache) and a finished 5-step run on it, made once."""
+    root = tmp_path_factory.mktemp("world")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setitem(collect_mod.SCALES, "quick", dict(TINY))
+        assert main(["data", "collect", "--family", FAMILY, "--root", str(root / "data"), "--workers", "1"]) == 0
+        load_family_data(FAMILY, root=root / "data")  # writes arrays.npz
+        assert main(["train", "--steps", "5", "--data-root", str(root / "data"), "--out-dir", str(root / "run")]) == 0
+    return root
+
+
+@dataclass
+class Env:
+    """One case's directory: copies of the world's collection and run, and where new things may go."""
+
+    tmp: Path
+
+    @property
+    def data(self) -> Path:
+        return self.tmp / "data"
+
+    @property
+    def run(self) -> Path:
+        return self.tmp / "run"
+
+    @property
+    def collection(self) -> Path:
+        return self.data / COLLECTION
+
+    @property
+    def fresh(self) -> Path:
+        """An empty data root (its family directory exists) for cases that collect."""
+        return self.tmp / "fresh"
+
+    def train(self, *extra) -> list:
+        """`bati train` resuming the finished run (the same config: it only re-summarises)."""
+        return ["train", "--steps", "5", "--data-root", self.data, "--out-dir", self.run, *extra]
+
+    def file(self, name: str) -> Path:
+        """A dataset file of the collection, e.g. "train-03-v0/data/main_data.hdf5"."""
+        return self.collection / name
+
+
+@pytest.fixture
+def env(world, tmp_path) -> Env:
+    shutil.copytree(world / "data", tmp_path / "data")
+    shutil.copytree(world / "run", tmp_path / "run")
+    (tmp_path / "fresh" / FAMILY).mkdir(parents=True)
+    (tmp_path / "a_file").write_text("a file, not a directory\n")
+    return Env(tmp_path)
+
+
+def snapshot(root: Path) -> dict[str, bytes | None]:
+    """Every file (its bytes) and directory (None) under `root`."""
+    return {p.relative_to(root).as_posix(): (p.read_bytes() if p.is_file() else None) for p in root.rglob("*")}
+
+
+def call(capsys, argv: list) -> tuple[int, str, list[str]]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, [line for line in err.splitlines() if line.strip()]
+
+
+# --- faults the cases inject ---------------------------------------------------------------------
+def enospc_on_fsync_of(name: str):
+    """A setup that makes the atomic write of the file `name` fail with ENOSPC (disk full) at its fsync."""
+
+    def setup(env: Env, patch: pytest.MonkeyPatch, stack: contextlib.ExitStack) -> None:
+        if not Path("/proc/self/fd").is_dir():
+            pytest.skip("needs /proc to tell which file is written")
+        real = os.fsync
+
+        def fsync(fd: int) -> None:
+            if f"/.{name}." in os.readlink(f"/proc/self/fd/{fd}"):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            real(fd)
+
+        patch.setattr(os, "fsync", fsync)
+
+    return setup
+
+
+def enospc_in_collection(env: Env, patch: pytest.MonkeyPatch, stack) -> None:
+    """Minari's writes fail with ENOSPC after three datasets (a write() error names no file)."""
+    real, calls = store.write_dataset, []
+
+    def write(*args, **kwargs):
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        calls.append(args[1])
+        return real(*args, **kwargs)
+
+    patch.setattr(store, "write_dataset", write)
+
+
+def unwritable(env: Env, patch: pytest.MonkeyPatch, stack) -> None:
+    """Every directory reads as not writable (what a chmod 555 or a read-only mount does; works as root)."""
+    real = os.access
+    patch.setattr(os, "access", lambda path, mode, **kw: False if mode & os.W_OK else real(path, mode, **kw))
+
+
+def write(relative: str, content: bytes | str, *, where: str = "run") -> Callable:
+    def setup(env: Env, patch, stack) -> None:
+        path = getattr(env, where) / relative
+        path.write_bytes(content.encode() if isinstance(content, str) else content)
+
+    return setup
+
+
+def tear_last_line(name: str) -> Callable:
+    """A kill in the middle of an append: half of one more record, no newline."""
+
+    def setup(env: Env, patch, stack) -> None:
+        with open(env.run / name, "a") as f:
+            f.write('{"step": 10, "p_test_ret')
+
+    return setup
+
+
+def damage_middle_line(env: Env, patch, stack) -> None:
+    path = env.run / "metrics.jsonl"
+    path.write_text("{not json\n" + path.read_text())
+
+
+def checkpoint_of_other_networks(env: Env, patch, stack) -> None:
+    path = env.run / "checkpoint.msgpack"
+    state = flax.serialization.msgpack_restore(path.read_bytes())
+    leaves = state["iql"]["actor"]["params"]
+    layer = next(iter(leaves.values()))
+    layer["kernel"] = np.zeros((3, 7), np.float32)
+    path.write_bytes(flax.serialization.msgpack_serialize(state))
+
+
+def truncate(name: str, keep: float = 0.5) -> Callable:
+    def setup(env: Env, patch, stack) -> None:
+        path = env.file(name) if not name.startswith("run/") else env.tmp / name
+        data = path.read_bytes()
+        path.write_bytes(data[: int(len(data) * keep)])
+
+    return setup
+
+
+def flip_a_byte(name: str) -> Callable:
+    """An edit that keeps the size (only the sha256 tells)."""
+
+    def setup(env: Env, patch, stack) -> None:
+        path = env.file(name)
+        data = bytearray(path.read_bytes())
+        data[len(data) // 2] ^= 0xFF
+        path.write_bytes(bytes(data))
+        (env.collection / store.ARRAY_CACHE).unlink()  # the loader must read (and check) the datasets
+
+    return setup
+
+
+def remove(name: str) -> Callable:
+    def setup(env: Env, patch, stack) -> None:
+        path = env.collection / name
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+    return setup
+
+
+def old_manifest(env: Env, patch, stack) -> None:
+    """A collection made before checksums (format 1): no `files`, no `settings`."""
+    path = env.collection / store.MANIFEST
+    manifest = json.loads(path.read_text())
+    for key in ("files", "settings"):
+        del manifest[key]
+    manifest["format"] = 1
+    path.write_text(json.dumps(manifest))
+
+
+def damage_cache(env: Env, patch, stack) -> None:
+    path = env.collection / store.ARRAY_CACHE
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # zip CRCs catch it
+    path.write_bytes(bytes(data))
+
+
+def lock_held(where: Callable[[Env], Path]) -> Callable:
+    """Hold the lock (through another open file: as another process would) for the whole case."""
+
+    def setup(env: Env, patch, stack: contextlib.ExitStack) -> None:
+        stack.enter_context(hold_lock(where(env), "a test"))
+
+    return setup
+
+
+def stale_lock(env: Env, patch, stack) -> None:
+    """A lock file left by a process that died (kill -9): no flock on it, a dead pid inside."""
+    (env.run / LOCK_NAME).write_text(json.dumps({"pid": 999_999_999, "host": "here", "since": "then"}))
+
+
+def empty_zoo(env: Env, patch, stack) -> None:
+    (env.tmp / "zoo").mkdir()
+
+
+# --- the catalogue -------------------------------------------------------------------------------
+@dataclass
+class Case:
+    id: str
+    argv: Callable[[Env], list]
+    code: int
+    needles: tuple[str, ...]
+    setup: Callable | None = None
+    warning: bool = False  # one `warning:` line (something repaired) instead of an `error:` line
+    changes: tuple[str, ...] = ()  # paths (relative to the case's directory) allowed to change
+    unwanted: tuple[str, ...] = ()  # words the message must not contain
+    check: Callable[[Env], None] | None = None
+
+
+RESUMED = ("run/eval.json",)  # a resumed finished run re-summarises (wall time, device)
+TRAIN = ["train", "--steps", "5"]
+
+
+def _metrics_without_torn(env: Env) -> None:
+    steps = [json.loads(line)["step"] for line in (env.run / "metrics.jsonl").read_text().splitlines()]
+    assert steps == [5]
+
+
+def _no_lock_left(env: Env) -> None:
+    assert not (env.run / LOCK_NAME).exists()
+
+
+CASES = [
+    # --- settings refused before any work
+    Case("unknown family", lambda e: [*TRAIN, "--family", "Nope", "--data-root", e.data], 2, ("'Nope'", "PointGoal")),
+    Case("unknown method", lambda e: [*TRAIN, "--method", "nope", "--data-root", e.data], 2, ("'nope'", "focal")),
+    Case("unknown scale", lambda e: [*TRAIN, "--scale", "huge"], 2, ("--scale", "huge")),
+    Case("steps 0", lambda e: ["train", "--steps", "0", "--data-root", e.data], 2, ("steps must be an integer >= 1", "0")),
+    Case("steps -5", lambda e: ["train", "--steps", "-5", "--data-root", e.data], 2, ("steps", "-5")),
+    Case("steps not an integer", lambda e: ["train", "--steps", "abc"], 2, ("--steps", "abc")),
+    Case("steps without a value", lambda e: ["train", "--steps"], 2, ("--steps", "bati train --help")),
+    Case("noise inf", lambda e: [*TRAIN, "--noise", "inf", "--data-root", e.data], 2, ("eps=inf",)),
+    Case("noise nan", lambda e: [*TRAIN, "--noise", "nan", "--data-root", e.data], 2, ("nan",)),
+    Case("noise -1", lambda e: [*TRAIN, "--noise", "-1", "--data-root", e.data], 2, ("eps=-1",)),
+    Case("train --seeds with nothing", lambda e: [*TRAIN, "--seeds", "--data-root", e.data], 2, ("--seeds needs",)),
+    Case("run --seeds with nothing", lambda e: ["run", "--seeds", "--data-root", e.data], 2, ("seeds must be",)),
+    Case("negative seed", lambda e: [*TRAIN, "--seed", "-1", "--data-root", e.data], 2, ("integers >= 0", "-1")),
+    Case("repeated seeds", lambda e: [*TRAIN, "--seeds", "1", "1", "--data-root", e.data], 2, ("distinct",)),
+    Case("negative data seed", lambda e: [*TRAIN, "--data-seed", "-2", "--data-root", e.data], 2, ("data_seed", "-2")),
+    Case("run --methods all bogus", lambda e: ["run", "--methods", "all", "bogus", "--data-root", e.data], 2,
+         ("'bogus'", "or all")),
+    Case("envs --task without --family", lambda e: ["envs", "--task", "1"], 2, ("--task needs --family",)),
+    Case("misspelt option", lambda e: ["train", "--famly", "X"], 2, ("--famly", "perhaps you meant --family")),
+    Case("no command", lambda e: [], 2, ("Expected one of", "train")),
+    Case("collect --workers 0", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh, "--workers", "0"],
+         2, ("workers=0",)),
+    Case("sweep: unknown setting", lambda e: ["sweep", "--settings", "stepz=3", "--out-dir", e.tmp / "sweep"], 2,
+         ("unknown setting 'stepz'",)),
+    # --- paths and the OS
+    Case("out-dir is a file", lambda e: [*TRAIN, "--data-root", e.data, "--out-dir", e.tmp / "a_file"], 2,
+         ("the run directory", "a_file is a file")),
+    Case("out-dir under a file", lambda e: [*TRAIN, "--data-root", e.data, "--out-dir", e.tmp / "a_file" / "run"], 2,
+         ("cannot create the run directory", "a_file is a file")),
+    Case("out-dir not writable", lambda e: [*TRAIN, "--data-root", e.data, "--out-dir", e.tmp / "new"], 2,
+         ("the run directory", "not writable"), setup=unwritable),
+    Case("data root is a file (train)", lambda e: [*TRAIN, "--data-root", e.tmp / "a_file", "--out-dir", e.tmp / "new"],
+         2, ("the data root", "a_file is a file")),
+    Case("data root is a file (collect)", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.tmp / "a_file"],
+         2, ("a_file is a file",)),
+    Case("data root not writable (collect)", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh], 2,
+         ("the data directory", "not writable"), setup=unwritable),
+    Case("disk full writing config.json", lambda e: [*TRAIN, "--data-root", e.data, "--out-dir", e.tmp / "new"], 2,
+         ("new/config.json", "no space left on device"), setup=enospc_on_fsync_of("config.json")),
+    Case("disk full writing eval.json", lambda e: e.train(), 2, ("run/eval.json", "no space left on device"),
+         setup=enospc_on_fsync_of("eval.json")),
+    Case("disk full while collecting", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh], 2,
+         (f"fresh/{COLLECTION}", "no space left on device"), setup=enospc_in_collection),
+    Case("likelihood --run-dir is a file", lambda e: ["likelihood", "--run-dir", e.tmp / "a_file"], 2,
+         ("a_file is a file, not a run directory",)),
+    Case("likelihood --run-dir without a run", lambda e: ["likelihood", "--run-dir", e.fresh], 2,
+         ("is not a run directory", "no config.json")),
+    Case("likelihood on config.json []", lambda e: ["likelihood", "--run-dir", e.run], 2,
+         ("config.json holds a JSON list",), setup=write("config.json", "[]")),
+    Case("no expert to collect with", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh, "--zoo-dir",
+                                                 e.tmp / "zoo"], 2, ("no expert for PointGoal",), setup=empty_zoo),
+    Case("sweep out-dir is a file", lambda e: ["sweep", "--out-dir", e.tmp / "a_file"], 2, ("a_file is a file",)),
+    # --- a run directory's files
+    Case("config.json is []", lambda e: e.train(), 2, ("config.json holds a list",), setup=write("config.json", "[]")),
+    Case("config.json torn", lambda e: e.train(), 2, ("config.json is not valid JSON",),
+         setup=write("config.json", '{"family": "Poi')),
+    Case("rerun with other settings", lambda e: ["train", "--steps", "10", "--data-root", e.data, "--out-dir", e.run], 2,
+         ("steps: 5 there, 10 now",)),
+    Case("checkpoint is garbage", lambda e: e.train(), 2, ("checkpoint.msgpack is damaged",),
+         setup=write("checkpoint.msgpack", b"\x00garbage"), unwanted=("family", "method")),
+    Case("checkpoint truncated", lambda e: e.train(), 2, ("checkpoint.msgpack is damaged", "incomplete"),
+         setup=truncate("run/checkpoint.msgpack"), unwanted=("family", "method")),
+    Case("checkpoint of other networks", lambda e: e.train(), 2, ("does not match this run's networks",),
+         setup=checkpoint_of_other_networks),
+    Case("torn last line of metrics.jsonl", lambda e: e.train(), 0, ("metrics.jsonl: dropped its torn last line 2",),
+         setup=tear_last_line("metrics.jsonl"), warning=True, changes=(*RESUMED, "run/metrics.jsonl"),
+         check=_metrics_without_torn),
+    Case("torn last line of eval.jsonl", lambda e: e.train(), 0, ("eval.jsonl: dropped its torn last line 2",),
+         setup=tear_last_line("eval.jsonl"), warning=True, changes=(*RESUMED, "run/eval.jsonl")),
+    Case("bad line in the middle of metrics.jsonl", lambda e: e.train(), 2, ("metrics.jsonl, line 1",),
+         setup=damage_middle_line),
+    Case("run directory locked", lambda e: e.train(), 2, ("the run directory", "is in use by pid", str(os.getpid())),
+         setup=lock_held(lambda e: e.run / LOCK_NAME)),
+    Case("stale lock of a dead process", lambda e: e.train(), 0, (), setup=stale_lock, changes=RESUMED + ("run/.lock",),
+         check=_no_lock_left),
+    # --- a collection's files
+    Case("collection locked", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh], 2,
+         ("the collection", "is in use by pid"), setup=lock_held(lambda e: store.lock_path(e.fresh / COLLECTION))),
+    Case("dataset edited: verify", lambda e: ["data", "verify", "--root", e.data], 1,
+         ("1 of 1 collection(s) damaged",), setup=flip_a_byte("train-03-v0/data/main_data.hdf5"),
+         changes=(f"data/{COLLECTION}/arrays.npz",)),
+    Case("dataset edited: train", lambda e: e.train(), 2,
+         ("train-03-v0/data/main_data.hdf5 was edited", "bati data verify"),
+         setup=flip_a_byte("train-03-v0/data/main_data.hdf5"), changes=(f"data/{COLLECTION}/arrays.npz",)),
+    Case("dataset truncated: verify", lambda e: ["data", "verify", "--family", FAMILY, "--root", e.data], 1,
+         ("damaged",), setup=truncate("p_test-04-v0/data/main_data.hdf5")),
+    Case("dataset truncated: info", lambda e: ["data", "info", "--family", FAMILY, "--root", e.data], 2,
+         ("p_test-04-v0/data/main_data.hdf5 is truncated",), setup=truncate("p_test-04-v0/data/main_data.hdf5")),
+    Case("dataset truncated: train (cached arrays)", lambda e: e.train(), 2,
+         ("p_test-04-v0/data/main_data.hdf5 is truncated",), setup=truncate("p_test-04-v0/data/main_data.hdf5")),
+    Case("dataset file missing: verify", lambda e: ["data", "verify", "--root", e.data, "--seed", "0"], 1,
+         ("damaged",), setup=remove("p_train-19-v0/data/metadata.json")),
+    Case("dataset directory missing: info", lambda e: ["data", "info", "--family", FAMILY, "--root", e.data], 2,
+         ("train-07-v0 is missing",), setup=remove("train-07-v0")),
+    Case("manifest is []", lambda e: ["data", "info", "--family", FAMILY, "--root", e.data], 2,
+         ("manifest.json holds a JSON list, not a manifest",), setup=write(f"{COLLECTION}/manifest.json", "[]",
+                                                                           where="data")),
+    Case("manifest torn", lambda e: ["data", "info", "--family", FAMILY, "--root", e.data], 2,
+         ("manifest.json is corrupted",), setup=write(f"{COLLECTION}/manifest.json", '{"format": 2, "fam',
+                                                      where="data")),
+    Case("array cache damaged", lambda e: e.train(), 0, ("arrays.npz is damaged", "rebuilding"), setup=damage_cache,
+         warning=True, changes=(*RESUMED, f"data/{COLLECTION}/arrays.npz")),
+    Case("verify: nothing matches", lambda e: ["data", "verify", "--root", e.data, "--seed", "7"], 2,
+         ("no collection under", "seed=7")),
+    Case("verify: unknown family", lambda e: ["data", "verify", "--family", "Nope", "--root", e.data], 2, ("'Nope'",)),
+    Case("verify: data root is a file", lambda e: ["data", "verify", "--root", e.tmp / "a_file"], 2,
+         ("a_file is a file",)),
+]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_bad_input_or_fault(case: Case, env: Env, capsys, monkeypatch):
+    with contextlib.ExitStack() as stack:
+        if case.setup is not None:
+            case.setup(env, monkeypatch, stack)
+        before = snapshot(env.tmp)
+        code, out, lines = call(capsys, case.argv(env))
+        monkeypatch.undo()  # the faults end with the command
+        after = snapshot(env.tmp)
+    assert "Traceback" not in out + "\n".join(lines)
+    assert code == case.code, (code, lines)
+    if case.warning or case.needles:
+        prefix = "warning:" if case.warning else "error:"
+        assert len(lines) == 1 and lines[0].startswith(prefix), lines
+        for needle in case.needles:
+            assert needle in lines[0], (needle, lines[0])
+        for word in case.unwanted:
+            assert word not in lines[0], (word, lines[0])
+    else:
+        assert lines == [], lines
+    changed = {k for k in before.keys() | after.keys() if before.get(k, b"") != after.get(k, b"") or
+               (k in before) != (k in after)}
+    assert changed <= set(case.changes), sorted(changed - set(case.changes))
+    if case.check is not None:
+        case.check(env)
+
+
+def test_the_catalogue_is_large_enough():
+    assert len(CASES) >= 40 and len({c.id for c in CASES}) == len(CASES)
+
+
+def test_verify_reports_every_damaged_file_by_name(env, capsys):
+    flip_a_byte("train-03-v0/data/main_data.hdf5")(env, None, None)
+    truncate("p_test-04-v0/data/main_data.hdf5")(env, None, None)
+    remove("p_train-19-v0/data/metadata.json")(env, None, None)
+    code, out, lines = call(capsys, ["data", "verify", "--root", env.data])
+    assert code == 1 and len(lines) == 1
+    report = " ".join(out.split())
+    assert "train-03-v0/data/main_data.hdf5 was edited" in report
+    assert "p_test-04-v0/data/main_data.hdf5 is truncated" in report
+    assert "p_train-19-v0/data/metadata.json is missing" in report
+
+
+def test_collections_without_checksums_are_named_not_refused(env, capsys):
+    old_manifest(env, None, None)
+    code, out, lines = call(capsys, ["data", "verify", "--root", env.data])
+    assert code == 0 and lines == [] and "no checksums (collected before format 2)" in out
+    code, out, lines = call(capsys, ["data", "info", "--family", FAMILY, "--root", env.data])
+    assert code == 0 and lines == [] and "no checksums (collected before format 2)" in " ".join(out.split())
+    assert load_family_data(FAMILY, root=env.data).train.observations.shape == (20, 400, 2)
+
+
+def test_manifest_records_sizes_checksums_and_settings(env):
+    manifest = json.loads((env.collection / store.MANIFEST).read_text())
+    assert manifest["format"] == store.FORMAT_VERSION >= store.CHECKSUM_FORMAT
+    assert len(manifest["files"]) == 120  # 60 datasets x (main_data.hdf5, metadata.json)
+    entry = manifest["files"]["train-00-v0/data/main_data.hdf5"]
+    assert entry["bytes"] == env.file("train-00-v0/data/main_data.hdf5").stat().st_size
+    assert entry["sha256"] == store.sha256_file(env.file("train-00-v0/data/main_data.hdf5"))
+    settings = manifest["settings"]
+    assert (settings["family"], settings["n_episodes"], settings["n_context_episodes"]) == (FAMILY, 2, 1)
+    assert settings["chunk"] == collect_mod.CHUNK and len(settings["expert_sha256"]) == 64
+
+
+@pytest.mark.slow
+def test_resume_without_a_checkpoint_restarts_the_logs(env, capsys):
+    """A kill before the first checkpoint: the resumed run starts over and writes each record once."""
+    metrics = (env.run / "metrics.jsonl").read_text()
+    (env.run / "checkpoint.msgpack").unlink()
+    (env.run / "eval.json").unlink()
+    code, _, lines = call(capsys, env.train())
+    assert code == 0 and lines == []
+    strip = lambda text: [{k: v for k, v in json.loads(line).items() if k != "wall_time"}  # noqa: E731
+                          for line in text.splitlines()]
+    assert strip((env.run / "metrics.jsonl").read_text()) == strip(metrics)
+    assert [json.loads(line)["step"] for line in (env.run / "eval.jsonl").read_text().splitlines()] == [5]
+
+
+# --- locks across processes ----------------------------------------------------------------------
+HOLDER = textwrap.dedent("""
+    import sys, time
+    from bati.io import hold_lock
+    with hold_lock(sys.argv[1], "a test"):
+        print("held", flush=True)
+        time.sleep(120)
+""")
+
+
+def test_a_lock_held_by_another_process_and_taken_over_after_its_kill(env, capsys):
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(env.run / LOCK_NAME)], stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = snapshot(env.tmp)
+        code, _, lines = call(capsys, env.train())
+        assert code == 2 and len(lines) == 1 and f"in use by pid {holder.pid} on " in lines[0], lines
+        assert snapshot(env.tmp) == before
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    assert (env.run / LOCK_NAME).exists()  # left behind by the killed holder: no flock on it any more
+    code, _, lines = call(capsys, env.train())
+    assert code == 0 and lines == [] and not (env.run / LOCK_NAME).exists()
+
+
+def test_a_lock_without_flock_takes_over_only_dead_pids_of_this_host(tmp_path, monkeypatch):
+    import socket
+
+    from bati import io as bati_io
+    from bati.errors import LockedError
+
+    monkeypatch.setattr(bati_io, "_flock", lambda fd: None)  # a file system without flock
+    lock = tmp_path / LOCK_NAME
+    lock.write_text(json.dumps({"pid": 999_999_999, "host": socket.gethostname()}))
+    with hold_lock(lock, "the dir"):
+        assert json.loads(lock.read_text())["pid"] == os.getpid()
+        with pytest.raises(LockedError, match=f"in use by pid {os.getpid()}"):
+            with hold_lock(lock, "the dir"):
+                pass
+    assert not lock.exists()
+    lock.write_text(json.dumps({"pid": 999_999_999, "host": "elsewhere"}))
+    with pytest.raises(LockedError, match="on elsewhere .*if it is gone, delete"):
+        with hold_lock(lock, "the dir"):
+            pass
+
+
+# --- kill -9 at random points, then resume ----------------------------------------------------------
+TRAIN_SCRIPT = textwrap.dedent("""
+    import sys
+    from pathlib import Path
+    from bati.train import TrainConfig, train
+    config = TrainConfig(family="PointGoal", steps=60, log_every=5, eval_every=20, checkpoint_every=10,
+                         rl_hidden_dims=(32, 32), task_batch=4, batch_size=8, context_length=20,
+                         eval_context_length=20, episodes_per_task=2, context_episodes=1,
+                         data_root=Path(sys.argv[1]), out_dir=Path(sys.argv[2]))
+    train(config, show_progress=False)
+""")
+
+
+def _run_script(script: str, *args, kill_after: float | None = None) -> bool:
+    """Run `script` in a new process group; with `kill_after`, SIGKILL the group then. True if it finished."""
+    process = subprocess.Popen([sys.executable, "-c", script, *map(str, args)], start_new_session=True,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        process.wait(timeout=kill_after if kill_after is not None else 600)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+        return False
+    assert process.returncode == 0, process.stderr.read()
+    return True
+
+
+def _records(path: Path) -> list[dict]:
+    return [{k: v for k, v in json.loads(line).items() if k != "wall_time"} for line in path.read_text().splitlines()]
+
+
+@pytest.mark.slow
+def test_kill_9_at_random_points_of_training_then_resume_gives_the_same_run(world, tmp_path):
+    rng = random.Random(13)
+    start = time.perf_counter()
+    assert _run_script(TRAIN_SCRIPT, world / "data", tmp_path / "straight")
+    duration = time.perf_counter() - start
+    kills = sorted(rng.uniform(0.3, 1.0) * duration for _ in range(3))
+    finished, killed_at = False, []
+    for delay in kills:  # each kill lands in a resumed process: kills during a resume are tested too
+        finished = _run_script(TRAIN_SCRIPT, world / "data", tmp_path / "killed", kill_after=delay)
+        if not finished:
+            killed_at.append(delay)
+    assert killed_at, kills  # at least one kill came before the end
+    if not finished:
+        assert _run_script(TRAIN_SCRIPT, world / "data", tmp_path / "killed")
+    straight, killed = tmp_path / "straight", tmp_path / "killed"
+    assert (straight / "checkpoint.msgpack").read_bytes() == (killed / "checkpoint.msgpack").read_bytes(), kills
+    assert _records(straight / "metrics.jsonl") == _records(killed / "metrics.jsonl"), kills
+    assert _records(straight / "eval.jsonl") == _records(killed / "eval.jsonl"), kills
+    a, b = (json.loads((d / "eval.json").read_text()) for d in (straight, killed))
+    for key in ("p_test_return", "p_train_return", "curve", "steps"):
+        assert a[key] == b[key], key
+    assert not (killed / LOCK_NAME).exists()
+
+
+COLLECT_SCRIPT = textwrap.dedent("""
+    import sys
+    from bati.data import collect as collect_mod
+    collect_mod.CHUNK = 8  # ten chunks: the datasets are written one by one while the kill may come
+    collect_mod.collect("PointGoal", "quick", 0, root=sys.argv[1], n_episodes=2, n_context_episodes=1,
+                        progress=False, workers=1)
+""")
+
+
+def _contents(path: Path) -> dict:
+    """Every dataset's arrays, options and metadata (minus the collection's random id)."""
+    manifest = json.loads((path / store.MANIFEST).read_text())
+    out = {}
+    for name in (n for split in store.SPLITS for n in manifest["datasets"][split]):
+        data = store.read_dataset(path / name, 2, 2, 200)
+        data["metadata"] = {k: v for k, v in data["metadata"].items() if k != "collection_id"}
+        data["options"] = json.dumps(data["options"], default=lambda x: np.asarray(x).tolist())
+        out[name] = data
+    return out
+
+
+@pytest.mark.slow
+def test_kill_9_at_random_points_of_a_collection_then_recollect_gives_the_same_data(tmp_path):
+    rng = random.Random(7)
+    start = time.perf_counter()
+    assert _run_script(COLLECT_SCRIPT, tmp_path / "straight")
+    duration = time.perf_counter() - start
+    for delay in sorted(rng.uniform(0.3, 1.0) * duration for _ in range(3)):
+        if _run_script(COLLECT_SCRIPT, tmp_path / "killed", kill_after=delay):
+            break
+    assert _run_script(COLLECT_SCRIPT, tmp_path / "killed")  # completes, or finds it complete
+    straight, killed = tmp_path / "straight" / COLLECTION, tmp_path / "killed" / COLLECTION
+    a, b = _contents(straight), _contents(killed)
+    assert list(a) == list(b) and len(a) == 60
+    for name in a:
+        for key in ("observations", "actions", "rewards", "options", "metadata"):
+            assert np.array_equal(a[name][key], b[name][key]) if key in ("observations", "actions", "rewards") \
+                else a[name][key] == b[name][key], (name, key)
+    assert store.verify_collection(killed)[0] == "ok"
+    leftovers = [p.name for p in (tmp_path / "killed" / FAMILY).iterdir() if p.name != "quick-seed0-eps1"]
+    assert leftovers == []  # no partial directory, no lock file

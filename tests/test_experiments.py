@@ -1,0 +1,247 @@
+"""`bati experiment`: the specs expand to the paper's cells; tiny variants run end to end; bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bati.cli import main
+from bati.envs import TaskError, TaskSplit, get_family
+from bati.evaluate import Evaluator, mixed_context_lengths
+from bati.experiments.probes import Probe, ProbeError, read_probe
+from bati.experiments.specs import (
+    ABLATION_METHODS,
+    MAIN_METHODS,
+    MUJOCO,
+    SPECS,
+    ExperimentError,
+    get_spec,
+    plan_experiment,
+    run_experiment,
+)
+from bati.report.experiment import experiment_report
+
+OUT = Path("/nonexistent-out")  # planning writes nothing: any path will do
+
+
+def configs(name: str, scale: str = "quick", **kwargs):
+    return [c.config for c in plan_experiment(get_spec(name), scale, OUT, **kwargs).cells]
+
+
+# --- the specs expand to the paper's cells -----------------------------------------------------
+def test_main_spec_cells():
+    quick, paper = configs("main"), configs("main", "paper")
+    assert len(quick) == 5 * 9 and len(paper) == 5 * 9 * 5
+    assert {c.family for c in paper} == set(MUJOCO) and {c.method for c in paper} == set(MAIN_METHODS)
+    assert {c.seed for c in paper} == {0, 1, 2, 3, 4} and {c.seed for c in quick} == {0}
+    first = paper[0]  # the paper variant down to its first cell: Table 3's settings
+    assert (first.scale, first.steps, first.batch_size, first.task_batch, first.rl_hidden_dims) == \
+        ("paper", 100_000, 256, 16, (256, 256))
+    assert all(c.noise == get_family(c.family).default_noise for c in quick)
+
+
+def test_noise_spec_cells():
+    cells = configs("noise")
+    levels = {(c.family, c.noise) for c in cells}
+    assert levels == {("AntDir", 0.0), ("AntDir", 0.5), ("AntDir", 1.0), ("HalfCheetahDir", 0.0),
+                      ("HalfCheetahDir", 0.4), ("HalfCheetahDir", 0.8)}
+    for family in ("AntDir", "HalfCheetahDir"):  # 0 and the family's default among three levels
+        assert {0.0, get_family(family).default_noise} <= {n for f, n in levels if f == family}
+    assert len(cells) == 6 * len(ABLATION_METHODS)
+
+
+def test_context_length_spec_cells_and_probes():
+    plan = plan_experiment(get_spec("context-length"), "quick", OUT)
+    assert len(plan.cells) == len(ABLATION_METHODS)
+    for cell in plan.cells:
+        c = cell.config
+        assert (c.family, c.noise, c.context_length) == ("HalfCheetahDir", 0.9, 50)
+        assert [p.eval_context_length for p in plan.probes[cell.id]] == [50, 200, 400]
+
+
+def test_ood_and_splits_spec_cells():
+    ood = configs("ood-tasks")
+    assert all(c.train_task_range == (0.0, math.pi) and c.test_task_range == (math.pi, 2 * math.pi) for c in ood)
+    splits = configs("splits")
+    assert sorted({(c.n_train_tasks, c.n_test_tasks) for c in splits}) == [(10, 30), (20, 20), (30, 10)]
+    assert all(c.task_batch == min(16, c.n_train_tasks) for c in splits)
+    main_antdir = {c.out_dir for c in configs("main") if c.family == "AntDir"}
+    assert {c.out_dir for c in splits if c.n_train_tasks == 20} <= main_antdir  # shared cells run once
+
+
+def test_interpolated_and_noiseless_spec_cells():
+    plan = plan_experiment(get_spec("interpolated-contexts"), "quick", OUT)
+    assert {c.config.method for c in plan.cells} == {"bati", "bati-r", "recon"}
+    assert all([p.context_mix for p in plan.probes[c.id]] == [0.0, 0.25, 0.5, 0.75, 1.0] for c in plan.cells)
+    hopper = configs("noiseless-hopper")
+    assert {(c.family, c.noise) for c in hopper} == {("HopperParam", 0.0)} and len(hopper) == len(MAIN_METHODS)
+
+
+def test_spec_filters_and_seed_override():
+    cells = configs("main", methods=("bati", "recon"), families=("AntDir",), seeds=(3, 4))
+    assert [(c.method, c.seed) for c in cells] == [("bati", 3), ("bati", 4), ("recon", 3), ("recon", 4)]
+
+
+# --- bad input: one line, exit 2, nothing written ------------------------------------------------
+@pytest.mark.parametrize("args, message", [
+    (["experiment", "tabel4"], "unknown experiment 'tabel4'"),
+    (["experiment", "splits", "--settings", "n_train_tasks=15"], "sets n_train_tasks itself"),
+    (["experiment", "main", "--methods", "bati", "bogus"], "has no method 'bogus'"),
+    (["experiment", "noise", "--families", "HopperParam"], "has no family 'HopperParam'"),
+    (["experiment", "main", "--settings", "steps=0"], "steps must be an integer >= 1"),
+    (["experiment", "main", "--seeds", "-1"], "seeds must be distinct integers >= 0"),
+    (["experiment", "main", "--seeds", "1", "1"], "seeds must be distinct integers >= 0"),
+])
+def test_experiment_bad_input(tmp_path, capsys, args, message):
+    out = tmp_path / "out"
+    code = main(args + ["--out-dir", str(out), "--data-root", str(tmp_path / "data")])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and message in lines[0], err
+    assert not out.exists() and not (tmp_path / "data").exists()
+
+
+def test_scale_a_spec_lacks():
+    spec = dataclasses.replace(get_spec("main"), scales=("quick",))
+    with pytest.raises(ExperimentError, match="has no 'paper' scale"):
+        plan_experiment(spec, "paper", OUT)
+
+
+@pytest.mark.parametrize("split, message", [
+    (TaskSplit(train_range=(1.0, 1.0)), "non-empty sub-range"),
+    (TaskSplit(train_range=(0.0, 7.0)), "non-empty sub-range"),
+    (TaskSplit(n_train=1), "at least 2 training tasks"),
+    (TaskSplit(n_test=0), "n_test must be an integer >= 1"),
+])
+def test_bad_task_splits(split, message):
+    with pytest.raises(TaskError, match=message):
+        split.checked(get_family("AntDir"))
+
+
+def test_task_range_on_a_family_without_one(tmp_path, capsys):
+    code = main(["data", "collect", "--family", "HalfCheetahDir", "--train-range", "0", "1", "--root", str(tmp_path)])
+    assert code == 2 and "cannot be drawn from a range" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
+def test_experiment_list(capsys):
+    assert main(["experiment", "list"]) == 0
+    out = capsys.readouterr().out
+    assert all(name in out for name in SPECS)
+
+
+# --- task splits and interpolated contexts -------------------------------------------------------
+def test_task_split_draws():
+    family = get_family("AntDir")
+    default = TaskSplit().draw(family, 3)
+    assert default == family.split_tasks(3)  # existing collections keep their tasks
+    train, test = TaskSplit(train_range=(0.0, math.pi), test_range=(math.pi, 2 * math.pi)).draw(family, 3)
+    assert len(train) == len(test) == 20
+    assert all(0 <= t < math.pi for t in train) and all(math.pi <= t < 2 * math.pi for t in test)
+    ten, thirty = TaskSplit(10, 30).draw(family, 3)
+    assert len(ten) == 10 and len(thirty) == 30
+    assert sorted(ten + thirty) == sorted(family.split_tasks(3, 20, 20)[0] + family.split_tasks(3, 20, 20)[1])
+    assert TaskSplit(10, 30).label() == "-tasks10x30" and TaskSplit().label() == ""
+
+
+def test_collected_data_honours_the_task_split(tmp_path):
+    from bati.data.batch import ensure_family_data
+
+    split = TaskSplit(n_train=3, n_test=2, train_range=(0.0, 1.0), test_range=(2.0, 3.0))
+    data = ensure_family_data("PointGoal", root=tmp_path, n_episodes=2, n_context_episodes=1, progress=False,
+                              workers=1, tasks=split)
+    angle = lambda tasks: np.arctan2(np.asarray(tasks)[:, 1], np.asarray(tasks)[:, 0])  # noqa: E731
+    assert data.train.n_tasks == 3 and data.p_test.n_tasks == data.p_train.n_tasks == 2
+    assert np.all((angle(data.train_tasks) >= 0) & (angle(data.train_tasks) < 1))
+    assert np.all((angle(data.test_tasks) >= 2) & (angle(data.test_tasks) < 3))
+    assert data.path.name == "quick-seed0-eps1-tasks3x2-train0to1-test2to3"
+    assert data.manifest["task_split"] == split.record() | {"train_range": [0.0, 1.0], "test_range": [2.0, 3.0]}
+    assert "--n-train 3 --n-test 2 --train-range 0 1 --test-range 2 3" in data.manifest["command"]
+
+
+@pytest.mark.parametrize("length, mix, expected", [(200, 0.25, (150, 50)), (50, 0.5, (25, 25)), (10, 1.0, (0, 10)),
+                                                   (10, 0.0, (10, 0)), (7, 0.5, (3, 4))])
+def test_mixed_context_lengths(length, mix, expected):
+    assert mixed_context_lengths(length, mix) == expected
+
+
+STUB_METHOD = SimpleNamespace(acts_itself=False)  # only the context sampler is exercised
+STUB_IQL = SimpleNamespace(act=lambda params, obs, z: obs)
+
+
+def test_interpolated_context_has_n_r_p_test_transitions(synthetic_data):
+    data = synthetic_data("PointGoal")
+    # mark the two sources apart: p_test rewards +1000, p_train rewards -1000
+    data = dataclasses.replace(data, p_test=data.p_test.replace(rewards=jnp.full_like(data.p_test.rewards, 1000.0)),
+                               p_train=data.p_train.replace(rewards=jnp.full_like(data.p_train.rewards, -1000.0)))
+    for mix in (0.0, 0.25, 0.5, 1.0):
+        evaluator = Evaluator(STUB_METHOD, STUB_IQL, data, context_length=20, context_mix=mix)
+        ctx = evaluator.contexts("mixed", jax.random.PRNGKey(0))
+        rewards = np.asarray(ctx["rewards"])
+        assert rewards.shape == (data.p_test.n_tasks, 20)
+        assert np.all((rewards == 1000).sum(1) == round(20 * mix)) and np.all((rewards == -1000).sum(1) == 20 - round(20 * mix))
+    with pytest.raises(ValueError, match="context_mix must be in"):
+        Evaluator(STUB_METHOD, STUB_IQL, data, context_length=20, context_mix=1.5)
+
+
+def test_probe_refuses_a_missing_run(tmp_path):
+    with pytest.raises(ProbeError, match="no readable run config"):
+        from bati.experiments.probes import run_probe
+
+        run_probe(tmp_path, Probe(eval_context_length=50))
+    with pytest.raises(ProbeError, match="context_mix"):
+        Probe(context_mix=2.0).check()
+
+
+# --- tiny variants end to end (PointGoal stands in for the MuJoCo families) ---------------------
+TINY = ("steps=10", "eval_every=10", "log_every=10", "batch_size=8", "rl_hidden_dims=[32,32]", "task_batch=2",
+        "episodes_per_task=2", "context_episodes=2")
+
+
+def tiny_spec(name: str):
+    spec = get_spec(name)
+    parts = []
+    for part in spec.parts:
+        settings = tuple(s for s in part.settings if not s.startswith(("train_task_range", "test_task_range")))
+        if len(settings) != len(part.settings):  # PointGoal's parameter is an angle in [0, pi]
+            settings += ("train_task_range=[0.0, 1.5]", "test_task_range=[1.5, 3.1]")
+        methods = ("bati", "recon") if name == "interpolated-contexts" else ("bati",)
+        probes = tuple(dataclasses.replace(p, repeats=2) for p in part.probes)
+        parts.append(dataclasses.replace(part, families=("PointGoal",), methods=methods, settings=settings,
+                                         probes=probes))
+    return dataclasses.replace(spec, parts=tuple(parts))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(SPECS))
+def test_tiny_experiment_end_to_end(tmp_path, name):
+    spec = tiny_spec(name)
+    out, data_root = tmp_path / "out", tmp_path / "data"
+    plan = plan_experiment(spec, "quick", out, settings=TINY, data_root=data_root)
+    result = run_experiment(plan, out, data_root=data_root, show_progress=False)
+    assert result.sweep.count("failed") == 0 and not result.probe_errors
+    assert json.loads((out / f"{name}.sweep.json").read_text())["cells"]
+    for cell in plan.cells:
+        assert (cell.config.out_dir / "eval.json").exists()
+        for probe in plan.probes.get(cell.id, ()):
+            saved = read_probe(cell.config.out_dir, probe)
+            assert saved is not None and len(saved[f"{'mixed' if probe.context_mix is not None else 'p_test'}_returns"]) == 2
+    report = experiment_report(plan, out / name, command=f"bati experiment {name}")
+    assert all(path.exists() for path in report["files"])
+    assert report["cells_done"] == len(plan.cells)
+    markdown = report["markdown"]
+    assert f"Experiment `{name}`" in markdown and "| method |" in markdown
+    if spec.paper:
+        # PointGoal's columns are not the paper's, so the paper's rows are listed below the table
+        assert "Paper rows without a run here" in markdown or "/ " in markdown
+    # a rerun finds everything done: nothing is trained or probed again
+    again = run_experiment(plan, out, data_root=data_root, show_progress=False)
+    assert again.sweep.count("skipped") == len(plan.cells)
