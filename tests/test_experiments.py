@@ -85,6 +85,22 @@ def test_interpolated_and_noiseless_spec_cells():
     assert {(c.family, c.noise) for c in hopper} == {("HopperParam", 0.0)} and len(hopper) == len(MAIN_METHODS)
 
 
+def test_kuhn_spec_cells():
+    quick, paper = configs("kuhn"), configs("kuhn", "paper")
+    assert {c.family for c in paper} == {"KuhnPoker"} and {c.method for c in paper} == set(MAIN_METHODS)
+    assert {c.seed for c in quick} == {0, 1, 2} and len(quick) == 3 * len(MAIN_METHODS)
+    assert len(paper) == 5 * len(MAIN_METHODS) and all(c.noise == 0.0 for c in paper)
+    assert all(c.resolved().context_length == 20 for c in quick)  # 10 hands (App. D.4)
+
+
+def test_state_term_spec_cells_share_main_cells():
+    cells = configs("state-term")
+    assert {(c.family, c.method) for c in cells} == {(f, m) for f in ("PointGoal",) + MUJOCO
+                                                      for m in ("bati", "bati-r", "bati-auto")}
+    main_dirs = {c.out_dir for c in configs("main")}
+    assert {c.out_dir for c in cells if c.method != "bati-auto" and c.family != "PointGoal"} <= main_dirs
+
+
 def test_spec_filters_and_seed_override():
     cells = configs("main", methods=("bati", "recon"), families=("AntDir",), seeds=(3, 4))
     assert [(c.method, c.seed) for c in cells] == [("bati", 3), ("bati", 4), ("recon", 3), ("recon", 4)]
@@ -213,9 +229,10 @@ def tiny_spec(name: str):
         settings = tuple(s for s in part.settings if not s.startswith(("train_task_range", "test_task_range")))
         if len(settings) != len(part.settings):  # PointGoal's parameter is an angle in [0, pi]
             settings += ("train_task_range=[0.0, 1.5]", "test_task_range=[1.5, 3.1]")
-        methods = ("bati", "recon") if name == "interpolated-contexts" else ("bati",)
+        methods = {"interpolated-contexts": ("bati", "recon"), "state-term": ("bati-auto",)}.get(name, ("bati",))
         probes = tuple(dataclasses.replace(p, repeats=2) for p in part.probes)
-        parts.append(dataclasses.replace(part, families=("PointGoal",), methods=methods, settings=settings,
+        families = part.families if name == "kuhn" else ("PointGoal",)  # KuhnPoker is cheap: itself
+        parts.append(dataclasses.replace(part, families=families, methods=methods, settings=settings,
                                          probes=probes))
     return dataclasses.replace(spec, parts=tuple(parts))
 
@@ -239,6 +256,8 @@ def test_tiny_experiment_end_to_end(tmp_path, name):
     assert report["cells_done"] == len(plan.cells)
     markdown = report["markdown"]
     assert f"Experiment `{name}`" in markdown and "| method |" in markdown
+    if name == "state-term":  # BATI-auto's calibrated weight is reported beside its returns
+        assert "**state weight**" in markdown and "p test inference error" in markdown
     if spec.paper:
         # PointGoal's columns are not the paper's, so the paper's rows are listed below the table
         assert "Paper rows without a run here" in markdown or "/ " in markdown

@@ -288,3 +288,109 @@ def test_csro_club_term_ignores_a_common_shift_of_the_latents():
     _, (_, metrics_shifted) = method.loss(shifted, batch, jax.random.PRNGKey(1))
     np.testing.assert_allclose(metrics_shifted["club"], metrics["club"], atol=1e-5)
     np.testing.assert_allclose(metrics_shifted["metric_loss"], metrics["metric_loss"], rtol=1e-5)
+
+
+# --- BATI-auto: Eq. 8's terms weighted by how well they identify tasks under a foreign behaviour ----
+def collected_transitions(task_ids, collector_ids, n, seed, dynamics_shift=0.0, reward_noise=1.0):
+    """The toy family acted in by other tasks' experts: a = 0.4 theta_collector + N(0, 0.1^2);
+    r = theta_task + 0.5 a + N(0, reward_noise^2); s' - s = 0.1 a + dynamics_shift theta_task + N(0, 0.05^2)."""
+    rng = np.random.default_rng(seed)
+    task_ids, collector_ids = np.asarray(task_ids), np.asarray(collector_ids)
+    obs = rng.normal(size=(len(task_ids), n, 2))
+    actions = 0.4 * THETAS[collector_ids][:, None, None] + 0.1 * rng.normal(size=(len(task_ids), n, 1))
+    rewards = THETAS[task_ids][:, None] + 0.5 * actions[..., 0] + reward_noise * rng.normal(size=(len(task_ids), n))
+    delta = 0.1 * actions + dynamics_shift * THETAS[task_ids][:, None, None] + 0.05 * rng.normal(size=obs.shape)
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    return {"observations": f32(obs), "actions": f32(actions), "rewards": f32(rewards),
+            "next_observations": f32(obs + delta)}
+
+
+class LeakyDynamics:
+    """A state model that learned the behaviour: each task's expert plays a = 0.4 theta, so on its own
+    data s' - s = 0.04 theta_z fits as well as the true 0.1 a. The reward model is the true one (noise 1)."""
+
+    def apply(self, params, obs, actions, z):
+        reward = z[..., :1] + 0.5 * actions
+        state = jnp.broadcast_to(0.04 * z[..., :1], obs.shape)
+        return jnp.concatenate([reward, state], -1), jnp.log(jnp.concatenate(
+            [jnp.full(reward.shape, 1.0), jnp.full(state.shape, 0.0025)], -1))
+
+
+class DynamicsOnly:
+    """A dynamics family's true model: the task moves s' - s = 0.1 a + 0.05 theta; the reward is 0.5 a."""
+
+    def apply(self, params, obs, actions, z):
+        reward = 0.5 * actions
+        state = 0.1 * actions + 0.05 * z[..., :1]
+        state = jnp.broadcast_to(state, obs.shape)
+        return jnp.concatenate([reward, state], -1), jnp.log(jnp.concatenate(
+            [jnp.full(reward.shape, 1.0), jnp.full(state.shape, 0.0025)], -1))
+
+
+def _auto(model):
+    from bati.methods.bati import BATIAuto
+
+    method = BATIAuto(SPEC)
+    method.model = model
+    table = jnp.zeros((4, 3)).at[:, 0].set(jnp.asarray(THETAS, jnp.float32))
+    distances = jnp.asarray(np.abs(THETAS[:, None] - THETAS[None, :]), jnp.float32)
+    return method, {"table": table, "dynamics": None}, distances
+
+
+def _nearest(z):
+    return np.argmin(np.abs(np.asarray(z)[:, :1] - THETAS[None, :]), axis=1)
+
+
+def test_context_nll_terms_add_up_to_the_full_nll():
+    from bati.methods.dynamics import context_nll, context_nll_terms
+
+    context = collected_transitions([0, 1, 2], [3, 3, 0], n=20, seed=0)
+    z = jnp.asarray([[0.5, 0, 0], [1.0, 0, 0], [-1.0, 0, 0]], jnp.float32)
+    reward, state = context_nll_terms(LeakyDynamics(), None, context, z)
+    np.testing.assert_allclose(reward + state, context_nll(LeakyDynamics(), None, context, z), rtol=1e-5)
+    np.testing.assert_allclose(reward, context_nll(LeakyDynamics(), None, context, z, reward_only=True), rtol=1e-6)
+
+
+def test_bati_auto_weighs_down_a_state_model_that_leaks_the_behaviour():
+    method, params, distances = _auto(LeakyDynamics())
+    off_policy = collected_transitions(np.arange(4), [3, 2, 1, 0], n=100, seed=1)  # task i, expert 3 - i
+    calibrated, info = method.calibrate(params, off_policy, distances)
+    assert float(info["state_weight"]) < 0.5 and float(info["calibration_error"]) == 0.0
+    assert float(info["calibration_error_full"]) > 0.5  # the paper's Eq. 8 picks the collectors here
+    p_test = collected_transitions([0, 1, 2, 3], [3, 3, 0, 0], n=100, seed=2)
+    key = jax.random.PRNGKey(0)
+    np.testing.assert_array_equal(_nearest(method.infer(calibrated, p_test, key)), [0, 1, 2, 3])
+    full = BATI(SPEC)
+    full.model = LeakyDynamics()
+    assert (_nearest(full.infer(params, p_test, key)) != [0, 1, 2, 3]).any()  # the leak, for contrast
+
+
+def test_bati_auto_keeps_the_state_term_where_it_carries_the_task():
+    method, params, distances = _auto(DynamicsOnly())
+    off_policy = collected_transitions(np.arange(4), [3, 2, 1, 0], n=100, seed=1, dynamics_shift=0.05)
+    calibrated, info = method.calibrate(params, off_policy, distances)
+    assert float(info["state_weight"]) == 0.5  # ties go to the paper's weighting
+    assert float(info["calibration_error"]) == 0.0 and float(info["calibration_error_reward"]) > 0.5
+    p_test = collected_transitions([0, 1, 2, 3], [3, 3, 0, 0], n=100, seed=2, dynamics_shift=0.05)
+    np.testing.assert_array_equal(_nearest(method.infer(calibrated, p_test, jax.random.PRNGKey(0))), [0, 1, 2, 3])
+
+
+def test_off_policy_contexts_come_from_episodes_of_other_experts():
+    from bati.data.batch import TaskData, sample_off_policy_contexts
+
+    length, episodes = 10, 4
+    collectors = np.array([[0, 2, 0, 0], [1, 1, 1, 0], [2, 2, 2, 2]])  # task 2 has no foreign episode
+    steps = np.arange(episodes * length, dtype=np.float32)
+    data = TaskData(observations=jnp.asarray(np.broadcast_to(steps[None, :, None], (3, 40, 1))),
+                    actions=jnp.zeros((3, 40, 1)), rewards=jnp.asarray(np.broadcast_to(steps, (3, 40))),
+                    next_observations=jnp.zeros((3, 40, 1)),
+                    collector=jnp.asarray(np.repeat(collectors, length, axis=1), jnp.int32), episode_length=length)
+    for seed in range(20):
+        ctx = sample_off_policy_contexts(data, jax.random.PRNGKey(seed), 6)
+        first = np.asarray(ctx["rewards"])[:, 0].astype(int)
+        episode = first // length
+        assert episode[0] == 1 and episode[1] == 3  # the only foreign episodes of tasks 0 and 1
+        assert np.all(first % length <= length - 6)  # within one episode
+        np.testing.assert_array_equal(np.asarray(ctx["rewards"]) - first[:, None], np.arange(6)[None].repeat(3, 0))
+    with pytest.raises(ValueError, match="off-policy context holds 1 to 10"):
+        sample_off_policy_contexts(data, jax.random.PRNGKey(0), 11)

@@ -14,13 +14,13 @@ transitions from p_train followed by N r from p_test, one source called "mixed".
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bati.data import FamilyData, sample_contexts
+from bati.data import FamilyData, sample_contexts, sample_off_policy_contexts
 from bati.envs import get_family
 from bati.envs.rollout import rollout
 
@@ -32,6 +32,7 @@ class EvalResult:
     returns: dict[str, np.ndarray]  # source -> (n_test_tasks,)
     inference_errors: dict[str, np.ndarray]  # source -> (n_test_tasks,)
     latents: dict[str, np.ndarray]
+    diagnostics: dict[str, float] = field(default_factory=dict)  # e.g. BATI-auto's calibrated state weight
 
     def summary(self) -> dict:
         out = {}
@@ -39,7 +40,7 @@ class EvalResult:
             out[f"{s}_return"] = float(self.returns[s].mean())
             out[f"{s}_inference_error"] = float(self.inference_errors[s].mean())
             out[f"{s}_task_returns"] = self.returns[s].round(3).tolist()
-        return out
+        return out | {name: float(value) for name, value in self.diagnostics.items()}
 
 
 def mixed_context_lengths(length: int, mix: float) -> tuple[int, int]:
@@ -64,6 +65,7 @@ class Evaluator:
         self.latents_of_runs = jax.jit(jax.vmap(self.infer_latents))
         train, test = data.train_tasks, data.test_tasks
         self.distances = self.family.distance_matrix(test, train)  # (n_test, n_train)
+        self.train_distances = jnp.asarray(self.family.distance_matrix(train, train), jnp.float32)
 
     def contexts(self, source: str, key: jax.Array) -> dict:
         """One context of `context_length` transitions per test task from `source` ("p_test",
@@ -80,10 +82,16 @@ class Evaluator:
         contexts = {**contexts, "task_arrays": task_arrays}  # the true tasks: only the Oracle reads them
         return self.method.infer(params, contexts, key)
 
-    def infer_latents(self, method_params, key) -> dict[str, jax.Array]:
+    def infer_latents(self, method_params, key) -> tuple[dict[str, jax.Array], dict[str, jax.Array]]:
         """The latent inferred from a context of each test task per source, and the reference latent of
-        each training task (its table entry, or inferred from its own training data)."""
+        each training task (its table entry, or inferred from its own training data); and the
+        method's calibration diagnostics (a calibrating method is calibrated first, see `calibrates`)."""
         keys = jax.random.split(key, len(self.sources) + 1)
+        diagnostics = {}
+        if self.method.calibrates:  # its own key: the other methods' draws stay as they were
+            length = min(self.context_length, self.data.train.episode_length)
+            contexts = sample_off_policy_contexts(self.data.train, jax.random.fold_in(key, 0xCA1), length)
+            method_params, diagnostics = self.method.calibrate(method_params, contexts, self.train_distances)
         test_arrays = jnp.asarray(self.data.test_task_arrays, jnp.float32)
         latents = {}
         for source, k in zip(self.sources, keys):
@@ -97,7 +105,7 @@ class Evaluator:
             train = self.data.train
             contexts = sample_contexts(train, k_context, jnp.arange(train.rewards.shape[0]), self.context_length)
             latents["reference"] = self._infer(method_params, contexts, train_arrays, k_infer)
-        return latents
+        return latents, diagnostics
 
     def evaluate(self, state, key, seed: int) -> EvalResult:
         """Evaluate one run's state (env i of the rollout is reset with seed + i)."""
@@ -111,7 +119,7 @@ class Evaluator:
         batched (vmapped) policy call per step; run j's env i is reset with seeds[j] + i, as `evaluate`.
         """
         k, n = len(seeds), len(self.data.test_tasks)
-        latents = jax.device_get(self.latents_of_runs(states.method, keys))
+        latents, diagnostics = jax.device_get(self.latents_of_runs(states.method, keys))
         policy_params = states.method if self.method.acts_itself else states.iql.actor
         returns = {}
         for source in self.sources:
@@ -133,7 +141,8 @@ class Evaluator:
         for j in range(k):
             run_latents = {name: np.asarray(value[j]) for name, value in latents.items()}
             errors = {s: self.inference_error(run_latents[s], run_latents["reference"]) for s in self.sources}
-            results.append(EvalResult({s: returns[s][j] for s in self.sources}, errors, run_latents))
+            results.append(EvalResult({s: returns[s][j] for s in self.sources}, errors, run_latents,
+                                      {name: float(value[j]) for name, value in diagnostics.items()}))
         return results
 
     def inference_error(self, z: np.ndarray, reference: np.ndarray) -> np.ndarray:

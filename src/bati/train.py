@@ -442,6 +442,11 @@ def summarize_run(out: Path, last: int = 5) -> dict:
         summary[f"{source}_task_returns"] = evals[-1][f"{source}_task_returns"]
     curve_keys = ("step", "p_test_return", "p_train_return", "p_test_inference_error", "p_train_inference_error")
     summary["curve"] = [{k: e[k] for k in curve_keys if k in e} for e in evals]
+    # a method's own numbers (e.g. BATI-auto's calibrated state weight), averaged like the returns
+    extra = [k for k, v in evals[-1].items() if k not in curve_keys and isinstance(v, (int, float))
+             and all(isinstance(e.get(k), (int, float)) for e in tail)]
+    if extra:
+        summary["diagnostics"] = {k: float(np.mean([e[k] for e in tail])) for k in extra}
     summary["config"] = {k: v for k, v in config.items() if k != "runtime"}
     return summary
 

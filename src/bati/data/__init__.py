@@ -23,6 +23,7 @@ _EXPORTS = {
     "ensure_family_data": "bati.data.batch",
     "sample_batch": "bati.data.batch",
     "sample_contexts": "bati.data.batch",
+    "sample_off_policy_contexts": "bati.data.batch",
 }
 
 __all__ = list(_EXPORTS)

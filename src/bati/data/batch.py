@@ -133,6 +133,25 @@ def sample_contexts(data: TaskData, key: jax.Array, task_ids: jax.Array, length:
     }
 
 
+@functools.partial(jax.jit, static_argnames=("length",))
+def sample_off_policy_contexts(data: TaskData, key: jax.Array, length: int) -> dict:
+    """One context of `length` (<= an episode) per task from an episode of that task that ANOTHER
+    task's expert collected (Eq. 9's 10% share): the task's dynamics and rewards under a foreign
+    behaviour, as a p_test context has them. A task without such an episode gets one of its own."""
+    n_episodes, episode_length = data.n_episodes, data.episode_length
+    if not 1 <= length <= episode_length:
+        raise ValueError(f"an off-policy context holds 1 to {episode_length} transitions, got {length}")
+    firsts = data.collector[:, ::episode_length][:, :n_episodes]  # (n_tasks, n_episodes) collectors
+    foreign = firsts != jnp.arange(data.n_tasks)[:, None]
+    foreign = jnp.where(foreign.any(axis=1, keepdims=True), foreign, True)
+    k_episode, k_start = jax.random.split(key)
+    episode = jax.random.categorical(k_episode, jnp.where(foreign, 0.0, -jnp.inf), axis=1)
+    start = jax.random.randint(k_start, episode.shape, 0, episode_length - length + 1)
+    steps = (episode * episode_length + start)[:, None] + jnp.arange(length)
+    rows = jnp.arange(data.n_tasks)[:, None]
+    return {name: getattr(data, name)[rows, steps] for name in TRANSITION_FIELDS}
+
+
 # --- loading -----------------------------------------------------------------------------------
 def load_family_data(
     family: str,

@@ -26,6 +26,8 @@ from bati.train import check_seeds
 SCALES = ("quick", "paper")
 MUJOCO = ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")
 MAIN_METHODS = ("bati", "bati-r", "recon", "focal", "unicorn", "csro", "dpt", "oracle", "no-context")
+# Beyond the paper (docs/methods.md): BATI with Eq. 8's terms weighted by calibration, beside its two fixed forms.
+STATE_TERM_METHODS = ("bati", "bati-r", "bati-auto")
 # The methods of the paper's ablation tables (Tables 1, 2, 5 and Figs. 5, 7), and our reward-only BATI.
 ABLATION_METHODS = ("bati", "bati-r", "csro", "focal", "recon", "unicorn")
 DEFAULT_SEEDS = {"quick": (0,), "paper": (0, 1, 2, 3, 4)}
@@ -68,7 +70,11 @@ class Spec:
     paper: PaperTable | None = None
     figures: tuple[str, ...] = ("curves",)
     """curves: learning curves (p_test, p_train); vs: final metric against the column key; tsne."""
+    extra_metrics: tuple[str, ...] = ()
+    """More tables, of numbers a method reports itself (its eval.json's diagnostics, e.g. state_weight)."""
     scales: tuple[str, ...] = SCALES
+    seeds: dict[str, tuple[int, ...]] = field(default_factory=dict)
+    """Default seeds per scale where they differ from DEFAULT_SEEDS (a cheap family runs more at quick)."""
 
 
 def _settings(**values) -> tuple[str, ...]:
@@ -168,6 +174,27 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         claim="without noise the baselines still fall short of BATI (UNICORN gains a little)",
         parts=(Part(("HopperParam",), MAIN_METHODS, noises=(0.0,)),),
     ),
+    Spec(
+        name="kuhn",
+        title="Table 6: Kuhn poker, the learner is player 1 and a task is player 2's policy (App. D.4)",
+        claim="BATI comes closest to the oracle (-0.049 vs 0.0734); every encoder is far below it (-0.18 to -0.24)",
+        parts=(Part(("KuhnPoker",), MAIN_METHODS),),
+        paper=PaperTable("Table 6", {
+            "oracle": {"KuhnPoker": "0.0734"}, "bati": {"KuhnPoker": "-0.049 ± 0.025"},
+            "csro": {"KuhnPoker": "-0.180 ± 0.032"}, "focal": {"KuhnPoker": "-0.191 ± 0.020"},
+            "recon": {"KuhnPoker": "-0.185 ± 0.052"}, "unicorn": {"KuhnPoker": "-0.243 ± 0.042"},
+        }),
+        seeds={"quick": (0, 1, 2)},  # minutes on the CPU: three seeds fit
+    ),
+    Spec(
+        name="state-term",
+        title="Beyond the paper: BATI-auto (Eq. 8's reward and state terms weighted by how well each identifies "
+              "training tasks under another task's behaviour) beside BATI (full Eq. 8) and BATI-R (reward term)",
+        claim="(ours, issue 15) one BATI needs no choice: on every family its p_test inference error is at most "
+              "min(bati, bati-r) + 10% and its return at least max(bati, bati-r) - 5%",
+        parts=(Part(("PointGoal",) + MUJOCO, STATE_TERM_METHODS),),
+        extra_metrics=("state_weight",),
+    ),
 )}
 
 
@@ -197,7 +224,7 @@ def plan_experiment(spec: Spec, scale: str, out_dir: Path, *, seeds: tuple[int, 
     if scale not in spec.scales:
         raise ExperimentError(f"experiment {spec.name!r} has no {scale!r} scale; choose one of: {', '.join(spec.scales)}")
     try:
-        seeds = check_seeds(DEFAULT_SEEDS[scale] if seeds is None else seeds)
+        seeds = check_seeds(default_seeds(spec, scale) if seeds is None else seeds)
     except ValueError as err:
         raise ExperimentError(str(err)) from err
     own = {s.partition("=")[0].strip().replace("-", "_") for part in spec.parts for s in part.settings}
@@ -270,9 +297,13 @@ def default_out_dir(scale: str) -> Path:
     return Path("results") / scale / "experiments"
 
 
+def default_seeds(spec: Spec, scale: str) -> tuple[int, ...]:
+    return spec.seeds.get(scale, DEFAULT_SEEDS[scale])
+
+
 def describe(spec: Spec, scale: str = "quick") -> dict:
     """A spec's summary for `bati experiment list` (cell counts at its default seeds)."""
-    seeds = DEFAULT_SEEDS[scale]
+    seeds = default_seeds(spec, scale)
     n_cells = 0
     for part in spec.parts:
         n_cells += len(part.families) * len(part.methods) * max(1, len(part.noises)) * len(seeds)

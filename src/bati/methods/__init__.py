@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from bati.methods.base import MethodSpec, TaskInference
-from bati.methods.bati import BATI, BATIReward
+from bati.methods.bati import BATI, BATIAuto, BATIReward
 from bati.methods.csro import CSRO
 from bati.methods.dpt import DPT
 from bati.methods.focal import FOCAL
@@ -12,7 +12,7 @@ from bati.methods.oracle import Oracle
 from bati.methods.recon import Recon
 from bati.methods.unicorn import UNICORN
 
-METHODS = {"bati": BATI, "bati-r": BATIReward, "recon": Recon, "unicorn": UNICORN, "csro": CSRO,
+METHODS = {"bati": BATI, "bati-r": BATIReward, "bati-auto": BATIAuto, "recon": Recon, "unicorn": UNICORN, "csro": CSRO,
            "focal": FOCAL, "dpt": DPT, "oracle": Oracle, "no-context": NoContext}
 
 

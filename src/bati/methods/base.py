@@ -51,6 +51,10 @@ class TaskInference:
     """The latent says which task it is (False for the `no-context` control: its error is undefined)."""
     acts_itself: bool = False
     """The method is its own policy (`act(params, obs, z)`); IQL is not trained for it."""
+    calibrates: bool = False
+    """Before inference the evaluator calls `calibrate(params, contexts, distances) -> (params, diagnostics)`
+    with one off-policy context per training task (another task's expert collected it) and the
+    training tasks' distance matrix; `infer` then receives the returned params (BATI-auto)."""
 
     def __init__(self, spec: MethodSpec):
         self.spec = spec

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from bati.methods.base import MethodSpec, TaskInference
-from bati.methods.dynamics import DynamicsModel, context_nll, init_dynamics
+from bati.methods.dynamics import DynamicsModel, context_nll, context_nll_terms, init_dynamics
 
 EMBEDDING_LOG_VAR = -4.0
 
@@ -56,12 +56,13 @@ class BATI(TaskInference):
         entries = jax.random.randint(k_entry, shape, 0, self.spec.n_train_tasks)
         candidates = params["table"][entries] + self.std * jax.random.normal(k_noise, shape + (self.spec.latent_dim,))
         # (K, N): NLL of context k under candidate n.
-        def nll_of(ctx, z):
-            return context_nll(self.model, params["dynamics"], ctx, z, reward_only=self.reward_only_inference)
-
-        nll = jax.vmap(lambda ctx, zs: jax.vmap(lambda z: nll_of(ctx, z))(zs))(context, candidates)
+        nll = jax.vmap(lambda ctx, zs: jax.vmap(lambda z: self.score(params, ctx, z))(zs))(context, candidates)
         best = jnp.argmin(nll, axis=1)
         return jnp.take_along_axis(candidates, best[:, None, None], axis=1)[:, 0]
+
+    def score(self, params, context, z):
+        """Eq. 8's objective: the context's NLL under latent z (lower is more likely)."""
+        return context_nll(self.model, params["dynamics"], context, z, reward_only=self.reward_only_inference)
 
 
 class BATIReward(BATI):
@@ -75,3 +76,46 @@ class BATIReward(BATI):
     """
 
     reward_only_inference = True
+
+
+STATE_WEIGHTS = (0.0, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0)
+
+
+class BATIAuto(BATI):
+    """BATI that weighs Eq. 8's reward and state terms by how well each identifies tasks under a
+    foreign behaviour, measured on the training data itself (not in the paper; docs/methods.md).
+
+    Training is BATI's. Before inference, `calibrate` takes one context per training task from an
+    episode that ANOTHER task's expert collected (Eq. 9's 10% share: task i's rewards and dynamics
+    under task j's behaviour, as a p_test context has them), scores it under every table entry with
+    each term, and picks the weight w in STATE_WEIGHTS of the objective (1 - w) reward + w state whose
+    argmin lands nearest (the family's task distance) to the true task. w = 0.5 is the paper's Eq. 8
+    (up to a factor 2), w = 0 BATI-R. A state model that leaks the behaviour points to the collector's
+    task on these contexts and is weighted down; one that carries the dynamics (HopperParam) is kept.
+    No knowledge of the family's kind is needed. Ties go to the weight nearest 0.5.
+    """
+
+    calibrates = True
+
+    def calibrate(self, params, contexts, distances):
+        """`contexts` (n_train, C, ...): off-policy contexts of the training tasks, in task order;
+        `distances` (n_train, n_train): the family's distances between training tasks. Returns the
+        params with the chosen "state_weight" and a dict of diagnostics."""
+        table = params["table"]
+        terms = jax.vmap(lambda ctx: jax.vmap(
+            lambda z: context_nll_terms(self.model, params["dynamics"], ctx, z))(table))(contexts)
+        reward, state = terms  # each (n_train contexts, n_train entries)
+        weights = jnp.asarray(STATE_WEIGHTS)
+        scores = (1.0 - weights)[:, None, None] * reward + weights[:, None, None] * state  # (W, n, n)
+        picked = jnp.argmin(scores, axis=-1)  # (W, n)
+        errors = jnp.take_along_axis(distances[None], picked[..., None], axis=-1)[..., 0].mean(-1)  # (W,)
+        best = jnp.argmin(errors + 1e-6 * jnp.abs(weights - 0.5))
+        diagnostics = {"state_weight": weights[best], "calibration_error": errors[best],
+                       "calibration_error_full": errors[STATE_WEIGHTS.index(0.5)],
+                       "calibration_error_reward": errors[0]}
+        return {**params, "state_weight": weights[best]}, diagnostics
+
+    def score(self, params, context, z):
+        reward, state = context_nll_terms(self.model, params["dynamics"], context, z)
+        weight = params.get("state_weight", 0.5)  # uncalibrated: the paper's Eq. 8
+        return (1.0 - weight) * reward + weight * state

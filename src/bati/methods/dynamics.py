@@ -80,3 +80,14 @@ def context_nll(model: DynamicsModel, params, transitions: dict, z: jax.Array, r
     if reward_only:
         mean, log_var, target = mean[..., :1], log_var[..., :1], target[..., :1]
     return reconstruction_nll(mean, log_var, target).mean(-1)
+
+
+def context_nll_terms(model: DynamicsModel, params, transitions: dict, z: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Eq. 7's two parts, each a mean over the C transitions: the reward's NLL and the state change's NLL
+    (summed over its dimensions), so that `context_nll` = reward + state (up to rounding)."""
+    z = jnp.broadcast_to(z[..., None, :], transitions["observations"].shape[:-1] + z.shape[-1:])
+    mean, log_var = model.apply(params, transitions["observations"], transitions["actions"], z)
+    target = transition_targets(transitions)
+    reward = reconstruction_nll(mean[..., :1], log_var[..., :1], target[..., :1]).mean(-1)
+    state = reconstruction_nll(mean[..., 1:], log_var[..., 1:], target[..., 1:]).mean(-1)
+    return reward, state

@@ -47,7 +47,7 @@ def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
         probes = plan.probes.get(cell.id, ())
         if not probes:
             records.append({**base, "p_test_return": run.p_test_return, "p_train_return": run.p_train_return,
-                            "p_test_inference_error": run.p_test_inference_error})
+                            "p_test_inference_error": run.p_test_inference_error, **raw.get("diagnostics", {})})
             continue
         for probe in probes:
             saved = read_probe(c.out_dir, probe)
@@ -89,8 +89,9 @@ def table_rows(spec: Spec, records: list[dict], metric: str) -> tuple[list[str],
 def _fmt(entry: dict) -> str:
     if not entry["n_seeds"]:
         return "–"
-    text = f"{entry['mean']:.1f}"
-    return text + (f" ± {entry['std']:.1f}" if entry["n_seeds"] > 1 else "")
+    digits = 1 if abs(entry["mean"]) >= 10 else 3  # KuhnPoker's returns per hand, errors, weights
+    text = f"{entry['mean']:.{digits}f}"
+    return text + (f" ± {entry['std']:.{digits}f}" if entry["n_seeds"] > 1 else "")
 
 
 def table_markdown(spec: Spec, metric: str, rows, columns, entries, title: str) -> str:
@@ -211,7 +212,8 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
     spec = plan.spec
     records, runs = cell_records(plan)
     out_dir = Path(out_dir)
-    metrics = [spec.metric] + (["p_train_return"] if spec.metric == "p_test_return" else [])
+    metrics = [spec.metric] + (["p_train_return", "p_test_inference_error"] if spec.metric == "p_test_return" else [])
+    metrics += list(spec.extra_metrics)
     sections, csv_rows, files = [], [], []
     for metric in metrics:
         rows, columns, entries = table_rows(spec, records, metric)
