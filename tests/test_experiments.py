@@ -101,6 +101,16 @@ def test_state_term_spec_cells_share_main_cells():
     assert {c.out_dir for c in cells if c.method != "bati-auto" and c.family != "PointGoal"} <= main_dirs
 
 
+def test_unknown_tasks_spec_cells_and_probes():
+    plan = plan_experiment(get_spec("unknown-tasks"), "quick", OUT)
+    ranges = {(c.config.train_task_range, c.config.test_task_range) for c in plan.cells}
+    assert ranges == {(None, None), ((0.0, math.pi), (math.pi, 2 * math.pi))}
+    assert {c.config.method for c in plan.cells} == {"bati", "bati-r", "bati-auto"}
+    assert all([p.name for p in plan.probes[c.id]] == ["novelty"] for c in plan.cells)
+    ood = {c.out_dir for c in configs("ood-tasks")}
+    assert {c.config.out_dir for c in plan.cells if c.config.train_task_range and c.config.method != "bati-auto"} <= ood
+
+
 def test_spec_filters_and_seed_override():
     cells = configs("main", methods=("bati", "recon"), families=("AntDir",), seeds=(3, 4))
     assert [(c.method, c.seed) for c in cells] == [("bati", 3), ("bati", 4), ("recon", 3), ("recon", 4)]
@@ -229,7 +239,8 @@ def tiny_spec(name: str):
         settings = tuple(s for s in part.settings if not s.startswith(("train_task_range", "test_task_range")))
         if len(settings) != len(part.settings):  # PointGoal's parameter is an angle in [0, pi]
             settings += ("train_task_range=[0.0, 1.5]", "test_task_range=[1.5, 3.1]")
-        methods = {"interpolated-contexts": ("bati", "recon"), "state-term": ("bati-auto",)}.get(name, ("bati",))
+        methods = {"interpolated-contexts": ("bati", "recon"), "state-term": ("bati-auto",),
+                   "unknown-tasks": ("bati-auto",)}.get(name, ("bati",))
         probes = tuple(dataclasses.replace(p, repeats=2) for p in part.probes)
         families = part.families if name == "kuhn" else ("PointGoal",)  # KuhnPoker is cheap: itself
         parts.append(dataclasses.replace(part, families=families, methods=methods, settings=settings,
@@ -250,12 +261,18 @@ def test_tiny_experiment_end_to_end(tmp_path, name):
         assert (cell.config.out_dir / "eval.json").exists()
         for probe in plan.probes.get(cell.id, ()):
             saved = read_probe(cell.config.out_dir, probe)
-            assert saved is not None and len(saved[f"{'mixed' if probe.context_mix is not None else 'p_test'}_returns"]) == 2
+            assert saved is not None
+            if probe.novelty:
+                assert 0.0 <= saved["p_train_auroc"] <= 1.0 and saved["repeats"] == 2
+            else:
+                assert len(saved[f"{'mixed' if probe.context_mix is not None else 'p_test'}_returns"]) == 2
     report = experiment_report(plan, out / name, command=f"bati experiment {name}")
     assert all(path.exists() for path in report["files"])
     assert report["cells_done"] == len(plan.cells)
     markdown = report["markdown"]
     assert f"Experiment `{name}`" in markdown and "| method |" in markdown
+    if name == "unknown-tasks":  # AUROC tables, one column per task range
+        assert "**p train auroc**" in markdown and "train [0, 1.5), test [1.5, 3.1)" in markdown
     if name == "state-term":  # BATI-auto's calibrated weight is reported beside its returns
         assert "**state weight**" in markdown and "p test inference error" in markdown
     if spec.paper:

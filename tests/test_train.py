@@ -140,9 +140,10 @@ def test_a_checkpoint_with_other_networks_is_refused(tmp_path, point_data):
 
 
 def test_likelihood_split_reports_errors_for_each_part_of_eq8(tmp_path, monkeypatch, point_data):
+    from bati import inference
     from bati.report import likelihood
 
-    monkeypatch.setattr(likelihood, "load_family_data", lambda *a, **k: point_data)
+    monkeypatch.setattr(inference, "load_family_data", lambda *a, **k: point_data)
     train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
     report = likelihood.likelihood_split(tmp_path / "run", context_length=20)
     max_distance = 2.0  # PointGoal goals lie on the unit circle
@@ -154,6 +155,47 @@ def test_likelihood_split_reports_errors_for_each_part_of_eq8(tmp_path, monkeypa
     train(_config(tmp_path, "recon", steps=5, eval_every=5, method="recon"), show_progress=False)
     with pytest.raises(ValueError, match="no task table"):
         likelihood.likelihood_split(tmp_path / "recon", context_length=20)
+
+
+def test_auroc_matches_hand_computation():
+    from bati.inference import auroc
+
+    # pairs (positive, negative): 2>1, 2=2 (1/2), 3>1, 3>2 -> 3.5 / 4
+    assert auroc(np.array([2.0, 3.0]), np.array([1.0, 2.0])) == 0.875
+    assert auroc(np.array([0.0]), np.array([1.0])) == 0.0
+
+
+def test_infer_and_novelty_on_a_trained_bati_auto_run(tmp_path, monkeypatch, point_data, capsys):
+    from bati import inference
+    from bati.cli import main
+    from bati.experiments.probes import Probe, run_probe
+
+    monkeypatch.setattr(inference, "load_family_data", lambda *a, **k: point_data)
+    train(_config(tmp_path, "run", steps=5, eval_every=5, method="bati-auto"), show_progress=False)
+    run_dir = tmp_path / "run"
+    evals = [json.loads(line) for line in (run_dir / "eval.jsonl").read_text().splitlines()]
+    assert min(abs(evals[-1]["state_weight"] - w) for w in (0.0, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0)) < 1e-6
+    assert json.loads((run_dir / "eval.json").read_text())["diagnostics"]["state_weight"] == evals[-1]["state_weight"]
+    # a p_train context of test task 1, as a user's file; and the same with rewards no task explains
+    context = {name: np.asarray(getattr(point_data.p_train, name)[1, :20])
+               for name in ("observations", "actions", "rewards", "next_observations")}
+    np.savez(tmp_path / "ctx.npz", **context)
+    np.savez(tmp_path / "odd.npz", **{**context, "rewards": context["rewards"] + 1000.0})
+    assert main(["infer", "--run-dir", str(run_dir), "--context", str(tmp_path / "ctx.npz")]) == 0
+    plain = json.loads(capsys.readouterr().out)
+    assert 0 <= plain["task_index"] < point_data.train.n_tasks and plain["task"] == point_data.train_tasks[plain["task_index"]]
+    assert main(["infer", "--run-dir", str(run_dir), "--context", str(tmp_path / "odd.npz")]) == 0
+    odd = json.loads(capsys.readouterr().out)
+    assert odd["unknown"] is True and odd["score"] > max(plain["score"], odd["threshold"])
+    np.savez(tmp_path / "bad.npz", **{**context, "actions": context["actions"][:5]})
+    assert main(["infer", "--run-dir", str(run_dir), "--context", str(tmp_path / "bad.npz")]) == 2
+    assert "actions has shape (5, 2); expected (20, 2)" in capsys.readouterr().err
+    assert main(["infer", "--run-dir", str(run_dir), "--context", str(tmp_path / "none.npz")]) == 2
+    assert "not a readable .npz context file" in capsys.readouterr().err
+    saved = run_probe(run_dir, Probe(novelty=True, repeats=2))
+    for key in ("p_train_auroc", "p_test_auroc", "p_test_vs_p_train_auroc", "p_train_flagged", "p_test_flagged"):
+        assert 0.0 <= saved[key] <= 1.0, key
+    assert json.loads((run_dir / "probes" / "novelty.json").read_text())["threshold"] == saved["threshold"]
 
 
 def test_training_step_vmaps_over_seeds(synthetic_data):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import sys
 import time
 import warnings
@@ -358,6 +359,25 @@ class Likelihood:
 
 
 @dataclass
+class Infer:
+    """Infer the task of a context file with a trained bati / bati-r / bati-auto run, and say if it is unknown.
+
+    The context file is an .npz of observations (C, obs_dim), actions (C, action_dim), rewards (C,) and
+    next_observations (C, obs_dim). Prints one JSON object: the training task that best explains the
+    context (Eq. 8 over the table), its score (mean NLL per transition) and `unknown`: the score is above
+    the `quantile` of the training tasks' own contexts' scores."""
+
+    run_dir: Path
+    context: Path
+    quantile: float = 0.95
+
+    def run(self) -> None:
+        from bati.inference import infer_context
+
+        print(json.dumps(infer_context(self.run_dir, self.context, self.quantile), indent=2))
+
+
+@dataclass
 class Sweep:
     """Run a grid of training runs (families x methods x seeds x noises x scales); reruns do only what is missing."""
 
@@ -497,7 +517,7 @@ class Report:
 
 
 COMMANDS = {"envs": Envs, "experts": Experts, "data": Data, "train": Train, "run": Run, "sweep": Sweep,
-            "experiment": Experiment, "likelihood": Likelihood, "report": Report}
+            "experiment": Experiment, "likelihood": Likelihood, "infer": Infer, "report": Report}
 
 
 def main(argv: list[str] | None = None) -> int:

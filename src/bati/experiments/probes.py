@@ -8,6 +8,7 @@ needs retraining: a probe loads the run's config and final checkpoint, evaluates
     <run>/probes/<name>.json          returns and inference errors per source (mean, std over repeats)
     <run>/probes/<name>-latents.npz   the first repeat's inferred latents (t-SNE of Fig. 6)
 
+The `novelty` probe measures unknown-task detection instead (`bati.inference.novelty`).
 A probe that is already on disk for the same run step and settings is read back, not redone.
 """
 
@@ -40,9 +41,13 @@ class Probe:
     """Share r of p_test transitions in an interpolated context (None: plain p_test and p_train)."""
     repeats: int = 5
     """Evaluations averaged (the runs' own numbers average their last 5)."""
+    novelty: bool = False
+    """Instead of returns: unknown-task detection (`bati.inference.novelty`: AUROC, flagged shares)."""
 
     @property
     def name(self) -> str:
+        if self.novelty:
+            return "novelty"
         parts = []
         if self.eval_context_length is not None:
             parts.append(f"C{self.eval_context_length}")
@@ -91,6 +96,14 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
     saved = read_probe(run_dir, probe)
     if saved is not None and saved.get("step") == config.steps:
         return saved
+    if probe.novelty:
+        from bati.inference import novelty
+
+        out = {"probe": asdict(probe), **novelty(run_dir, repeats=probe.repeats)}
+        if out["step"] != config.steps:
+            raise ProbeError(f"{run_dir} is at step {out['step']} of {config.steps}: finish the run first")
+        atomic_write_json(probe_path(run_dir, probe), out)
+        return out
     start = time.perf_counter()
     data = load_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
                             tasks=config.task_split())

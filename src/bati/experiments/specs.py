@@ -195,6 +195,20 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         parts=(Part(("PointGoal",) + MUJOCO, STATE_TERM_METHODS),),
         extra_metrics=("state_weight",),
     ),
+    Spec(
+        name="unknown-tasks",
+        title="Beyond the paper: does a context fit no known task? The best table entry's Eq. 8 NLL as a score, "
+              "on AntDir with test tasks outside ([pi, 2 pi)) and inside the training range",
+        claim="(ours, issue 15) contexts of out-of-range tasks score above the training tasks' (AUROC near 1), "
+              "contexts of in-range test tasks do not, whoever collected them",
+        parts=(Part(("AntDir",), STATE_TERM_METHODS, probes=(Probe(novelty=True),),
+                    settings=_settings(train_task_range=[0.0, PI], test_task_range=[PI, 2 * PI])),
+               Part(("AntDir",), STATE_TERM_METHODS, probes=(Probe(novelty=True),))),
+        columns="task_range",
+        metric="p_train_auroc",
+        extra_metrics=("p_test_auroc", "p_train_flagged", "p_test_flagged"),
+        figures=(),
+    ),
 )}
 
 

@@ -43,6 +43,7 @@ def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
         base = {"method": c.method, "family": c.family, "seed": c.seed, "noise": f"{c.noise:g}",
                 "family_noise": f"{c.family} eps={c.noise:g}", "split": f"{c.n_train_tasks}/{c.n_test_tasks}",
                 "context_length": str(c.eval_context_length), "commit": run.commit, "device": run.device,
+                "task_range": _task_range(c),
                 "wall_time_s": run.wall_time_s}
         probes = plan.probes.get(cell.id, ())
         if not probes:
@@ -53,11 +54,20 @@ def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
             saved = read_probe(c.out_dir, probe)
             if saved is None:
                 continue
-            records.append({**base, **{k: v for k, v in saved.items() if k.endswith(("_return", "_inference_error"))},
+            kept = ("_return", "_inference_error", "_auroc", "_flagged")
+            records.append({**base, **{k: v for k, v in saved.items() if k.endswith(kept)},
                             "context_length": str(saved["context_length"]),
                             "context_mix": "" if probe.context_mix is None else f"{probe.context_mix:g}",
                             "probe": probe.name, "wall_time_s": saved.get("wall_time_s")})
     return records, runs
+
+
+def _task_range(config) -> str:
+    """The tasks' ranges of a cell, e.g. "train [0, 3.14), test [3.14, 6.28)", or "default"."""
+    if config.train_task_range is None and config.test_task_range is None:
+        return "default"
+    fmt = lambda r: "default" if r is None else f"[{r[0]:.3g}, {r[1]:.3g})"  # noqa: E731
+    return f"train {fmt(config.train_task_range)}, test {fmt(config.test_task_range)}"
 
 
 def _sort_key(value: str):

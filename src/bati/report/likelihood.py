@@ -14,37 +14,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bati.data import load_family_data, sample_contexts
+from bati.data import sample_contexts
 from bati.envs import get_family
-from bati.methods.dynamics import reconstruction_nll, transition_targets
-from bati.train import TrainConfig, Trainer, load_checkpoint, read_run_config
+from bati.inference import load_run
+from bati.methods.dynamics import context_nll_terms
 
 
 def likelihood_split(run_dir: Path, context_length: int = 200, seed: int = 0) -> dict:
-    saved = read_run_config(run_dir)  # one-line errors: a file, no config.json, not a JSON object
-    config = TrainConfig.from_record(saved).resolved()
-    data = load_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
-                            tasks=config.task_split())
-    trainer = Trainer(config, data)
-    if not hasattr(trainer.method, "task_latents"):
-        raise ValueError(f"{run_dir}: method {config.method!r} has no task table to score")
-    checkpoint = run_dir / "checkpoint.msgpack"
-    if not checkpoint.is_file():
-        raise ValueError(f"{run_dir} has no checkpoint yet: train the run first")
-    state = load_checkpoint(checkpoint, trainer.init(jax.random.PRNGKey(0)))
-    params, model = state.method, trainer.method.model
-    table = trainer.method.task_latents(params)
+    run = load_run(run_dir, calibrate=False)
+    config, data, params = run.config, run.data, run.params
+    model, table = run.method.model, run.method.task_latents(params)
     family = get_family(config.family)
     distances = family.distance_matrix(data.test_tasks, data.train_tasks)
 
     def split_nll(context, z):
-        zs = jnp.broadcast_to(z, context["observations"].shape[:-1] + z.shape)
-        mean, log_var = model.apply(params["dynamics"], context["observations"], context["actions"], zs)
-        target = transition_targets(context)
-        return (reconstruction_nll(mean[..., :1], log_var[..., :1], target[..., :1]).mean(),
-                reconstruction_nll(mean[..., 1:], log_var[..., 1:], target[..., 1:]).mean())
+        return context_nll_terms(model, params["dynamics"], context, z)
 
-    report = {"run_dir": str(run_dir), "family": config.family, "method": config.method, "step": int(state.step)}
+    report = {"run_dir": str(run_dir), "family": config.family, "method": config.method, "step": run.step}
     rows = np.arange(len(data.test_tasks))
     for source in ("p_train", "p_test"):
         task_data = getattr(data, source)

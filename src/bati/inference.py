@@ -1,0 +1,165 @@
+"""Test-time task inference with a trained likelihood method, and knowing when a context fits no known task.
+
+For a finished run of a method with a task table and an Eq. 8 objective (bati, bati-r, bati-auto):
+
+- `load_run(run_dir)`: the run's config, data, method and final parameters (BATI-auto calibrated first,
+  as the evaluator does).
+- `table_scores(run, contexts)`: for each context, its Eq. 8 objective (mean NLL per transition, with the
+  method's own weighting of the reward and state terms) under every table entry.
+- Unknown-task score of a context: the best (lowest) of these, i.e. how well the best known task
+  explains it. Calibrated on contexts of the training tasks (windows of their own data): the threshold
+  is the `quantile` (0.95) of those scores, and a context above it is flagged "unknown".
+- `novelty(run_dir)` (the `novelty` probe): over `repeats` draws of one context per task, the AUROC of telling the test tasks'
+  p_train and p_test contexts from the training tasks' contexts, and the share of each flagged. On the
+  `ood-tasks` data the test tasks lie outside the training range (high AUROC wanted); on the default
+  data they lie inside it (a low AUROC means new tasks of the training range are not called unknown).
+  The training windows come from data the model was fit on, which lowers their scores: a detector
+  that only tells seen from unseen data shows a high AUROC on both.
+- `infer_context(run_dir, context)`: `bati infer`, for a user's context file.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bati.data import FamilyData, load_family_data, sample_contexts, sample_off_policy_contexts
+from bati.data.batch import TRANSITION_FIELDS
+from bati.envs import get_family
+from bati.errors import BatiError
+from bati.io import git_commit
+from bati.train import TrainConfig, Trainer, load_checkpoint, read_run_config
+
+QUANTILE = 0.95
+
+
+class InferenceError(BatiError, ValueError):
+    """A run or context that cannot be scored (no table, no checkpoint, bad context file)."""
+
+
+@dataclass
+class LoadedRun:
+    run_dir: Path
+    config: TrainConfig
+    data: FamilyData
+    method: object
+    params: dict
+    step: int
+
+
+def load_run(run_dir: Path, calibrate: bool = True) -> LoadedRun:
+    """A run of a likelihood method at its last checkpoint (BATI-auto calibrated unless `calibrate` is False)."""
+    run_dir = Path(run_dir)
+    config = TrainConfig.from_record(read_run_config(run_dir)).resolved()
+    data = load_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
+                            tasks=config.task_split())
+    trainer = Trainer(config, data)
+    method = trainer.method
+    if not hasattr(method, "task_latents") or not hasattr(method, "score"):
+        raise InferenceError(f"{run_dir}: method {config.method!r} has no task table and likelihood to score")
+    checkpoint = run_dir / "checkpoint.msgpack"
+    if not checkpoint.is_file():
+        raise InferenceError(f"{run_dir} has no checkpoint: train (or resume) the run first")
+    state = load_checkpoint(checkpoint, trainer.init(jax.random.PRNGKey(0)))
+    params = state.method
+    if calibrate and method.calibrates:
+        family = get_family(config.family)
+        distances = jnp.asarray(family.distance_matrix(data.train_tasks, data.train_tasks), jnp.float32)
+        length = min(config.eval_context_length, data.train.episode_length)
+        windows = sample_off_policy_contexts(data.train, jax.random.PRNGKey(0xCA1), length)
+        params, _ = method.calibrate(params, windows, distances)
+    return LoadedRun(run_dir, config, data, method, params, int(state.step))
+
+
+def table_scores(run: LoadedRun, contexts: dict) -> np.ndarray:
+    """(K, n_train): Eq. 8's objective of each of K contexts under each table entry (its mean)."""
+    table = run.method.task_latents(run.params)
+    contexts = {name: contexts[name] for name in TRANSITION_FIELDS}
+    scores = jax.jit(jax.vmap(lambda ctx: jax.vmap(lambda z: run.method.score(run.params, ctx, z))(table)))
+    return np.asarray(scores(contexts))
+
+
+def auroc(positives: np.ndarray, negatives: np.ndarray) -> float:
+    """P(a positive scores above a negative), ties 1/2: the area under the ROC curve."""
+    p, n = np.ravel(positives)[:, None], np.ravel(negatives)[None, :]
+    return float(((p > n) + 0.5 * (p == n)).mean())
+
+
+def training_scores(run: LoadedRun, repeats: int, length: int, seed: int = 0) -> np.ndarray:
+    """Unknown-task scores of `repeats` contexts of every training task from its own data (the calibration set)."""
+    train = run.data.train
+    keys = jax.random.split(jax.random.PRNGKey(seed), repeats)
+    ids = jnp.arange(train.n_tasks)
+    return np.concatenate([table_scores(run, sample_contexts(train, k, ids, length)).min(1) for k in keys])
+
+
+def novelty(run_dir: Path, repeats: int = 5, quantile: float = QUANTILE, seed: int = 0) -> dict:
+    """AUROC and flagged shares of the test tasks' p_train / p_test contexts against the training tasks'
+    (the `novelty` probe of `bati experiment unknown-tasks` saves it)."""
+    start = time.perf_counter()
+    run = load_run(run_dir)
+    length = run.config.eval_context_length
+    known = training_scores(run, repeats, length, seed)
+    threshold = float(np.quantile(known, quantile))
+    out = {"run_dir": str(run.run_dir), "family": run.config.family, "method": run.config.method,
+           "seed": run.config.seed, "step": run.step, "context_length": length, "repeats": repeats,
+           "quantile": quantile, "threshold": threshold, "train_score_mean": float(known.mean())}
+    scores = {}
+    for source in ("p_train", "p_test"):
+        task_data = getattr(run.data, source)
+        ids = jnp.arange(task_data.n_tasks)
+        keys = jax.random.split(jax.random.PRNGKey(seed + 1), repeats)
+        scores[source] = np.concatenate([table_scores(run, sample_contexts(task_data, k, ids, length)).min(1)
+                                         for k in keys])
+        out[f"{source}_auroc"] = auroc(scores[source], known)
+        out[f"{source}_flagged"] = float(np.mean(scores[source] > threshold))
+        out[f"{source}_score_mean"] = float(scores[source].mean())
+    out["p_test_vs_p_train_auroc"] = auroc(scores["p_test"], scores["p_train"])
+    out.update(commit=git_commit(), wall_time_s=round(time.perf_counter() - start, 2))
+    return out
+
+
+def read_context(path: Path, obs_dim: int, action_dim: int) -> dict:
+    """A context file: an .npz with observations (C, obs_dim), actions (C, action_dim), rewards (C,),
+    next_observations (C, obs_dim), C >= 1. One-line errors naming the file and the array."""
+    try:
+        with np.load(path, allow_pickle=False) as saved:
+            arrays = {name: np.asarray(saved[name], np.float32) for name in TRANSITION_FIELDS if name in saved}
+    except (OSError, ValueError) as err:
+        raise InferenceError(f"{path}: not a readable .npz context file ({err})") from err
+    missing = [name for name in TRANSITION_FIELDS if name not in arrays]
+    if missing:
+        raise InferenceError(f"{path} lacks {', '.join(missing)}; a context file holds {', '.join(TRANSITION_FIELDS)}")
+    length = arrays["rewards"].shape[0] if arrays["rewards"].ndim == 1 else -1
+    expected = {"observations": (length, obs_dim), "actions": (length, action_dim), "rewards": (length,),
+                "next_observations": (length, obs_dim)}
+    for name, shape in expected.items():
+        if length < 1 or arrays[name].shape != shape:
+            raise InferenceError(f"{path}: {name} has shape {arrays[name].shape}; expected {shape} "
+                                 f"(C transitions, C >= 1, from rewards' length)")
+        if not np.all(np.isfinite(arrays[name])):
+            raise InferenceError(f"{path}: {name} holds NaN or infinite values")
+    return {name: jnp.asarray(a)[None] for name, a in arrays.items()}
+
+
+def infer_context(run_dir: Path, context_file: Path, quantile: float = QUANTILE, repeats: int = 5) -> dict:
+    """The training task that best explains a user's context, its score, and whether it is unknown."""
+    if not 0.0 < quantile < 1.0:
+        raise InferenceError(f"quantile must be in (0, 1), got {quantile!r}")
+    run = load_run(run_dir)
+    family = get_family(run.config.family)
+    spec = run.method.spec
+    context = read_context(Path(context_file), spec.obs_dim, spec.action_dim)
+    scores = table_scores(run, context)[0]
+    best = int(np.argmin(scores))
+    known = training_scores(run, repeats, min(int(context["rewards"].shape[1]), run.data.train.n_transitions))
+    threshold = float(np.quantile(known, quantile))
+    return {"run_dir": str(run.run_dir), "family": family.name, "method": run.config.method,
+            "context_length": int(context["rewards"].shape[1]), "task_index": best,
+            "task": run.data.train_tasks[best], "score": float(scores[best]), "threshold": threshold,
+            "unknown": bool(scores[best] > threshold), "quantile": quantile}
