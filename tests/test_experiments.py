@@ -281,3 +281,16 @@ def test_tiny_experiment_end_to_end(tmp_path, name):
     # a rerun finds everything done: nothing is trained or probed again
     again = run_experiment(plan, out, data_root=data_root, show_progress=False)
     assert again.sweep.count("skipped") == len(plan.cells)
+
+
+def test_a_probe_saved_before_a_new_probe_setting_is_read_back(tmp_path):
+    from dataclasses import asdict
+
+    from bati.experiments.probes import probe_path
+
+    probe = Probe(eval_context_length=50)
+    old = {k: v for k, v in asdict(probe).items() if k != "novelty"}  # saved before `novelty` existed
+    probe_path(tmp_path, probe).parent.mkdir()
+    probe_path(tmp_path, probe).write_text(json.dumps({"probe": old, "step": 10}))
+    assert read_probe(tmp_path, probe) == {"probe": old, "step": 10}
+    assert read_probe(tmp_path, Probe(eval_context_length=200)) is None

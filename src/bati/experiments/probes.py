@@ -77,7 +77,10 @@ def read_probe(run_dir: Path, probe: Probe) -> dict | None:
         saved = json.loads(probe_path(run_dir, probe).read_text())
     except (OSError, ValueError):
         return None
-    return saved if isinstance(saved, dict) and saved.get("probe") == asdict(probe) else None
+    if not isinstance(saved, dict) or not isinstance(saved.get("probe"), dict):
+        return None
+    # settings added to Probe later take their defaults in probes saved before them
+    return saved if {**asdict(Probe()), **saved["probe"]} == asdict(probe) else None
 
 
 def run_probe(run_dir: Path, probe: Probe) -> dict:

@@ -99,7 +99,8 @@ def table_rows(spec: Spec, records: list[dict], metric: str) -> tuple[list[str],
 def _fmt(entry: dict) -> str:
     if not entry["n_seeds"]:
         return "–"
-    digits = 1 if abs(entry["mean"]) >= 10 else 3  # KuhnPoker's returns per hand, errors, weights
+    size = abs(entry["mean"])
+    digits = 1 if size >= 10 else 2 if size >= 1 else 3  # returns; errors; KuhnPoker's returns per hand, weights
     text = f"{entry['mean']:.{digits}f}"
     return text + (f" ± {entry['std']:.{digits}f}" if entry["n_seeds"] > 1 else "")
 
