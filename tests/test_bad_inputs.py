@@ -514,6 +514,7 @@ def test_a_lock_without_flock_takes_over_only_dead_pids_of_this_host(tmp_path, m
 
 
 # --- kill -9 at random points, then resume ----------------------------------------------------------
+KILLS = 10  # random kill points per test, each in the process resumed after the previous kill
 TRAIN_SCRIPT = textwrap.dedent("""
     import sys
     from pathlib import Path
@@ -550,7 +551,7 @@ def test_kill_9_at_random_points_of_training_then_resume_gives_the_same_run(worl
     start = time.perf_counter()
     assert _run_script(TRAIN_SCRIPT, world / "data", tmp_path / "straight")
     duration = time.perf_counter() - start
-    kills = sorted(rng.uniform(0.3, 1.0) * duration for _ in range(3))
+    kills = sorted(rng.uniform(0.3, 1.0) * duration for _ in range(KILLS))
     finished, killed_at = False, []
     for delay in kills:  # each kill lands in a resumed process: kills during a resume are tested too
         finished = _run_script(TRAIN_SCRIPT, world / "data", tmp_path / "killed", kill_after=delay)
@@ -596,7 +597,7 @@ def test_kill_9_at_random_points_of_a_collection_then_recollect_gives_the_same_d
     start = time.perf_counter()
     assert _run_script(COLLECT_SCRIPT, tmp_path / "straight")
     duration = time.perf_counter() - start
-    for delay in sorted(rng.uniform(0.3, 1.0) * duration for _ in range(3)):
+    for delay in sorted(rng.uniform(0.3, 1.0) * duration for _ in range(KILLS)):
         if _run_script(COLLECT_SCRIPT, tmp_path / "killed", kill_after=delay):
             break
     assert _run_script(COLLECT_SCRIPT, tmp_path / "killed")  # completes, or finds it complete

@@ -440,10 +440,12 @@ class Experiment:
         from bati.report.experiment import experiment_report
 
         if self.name == "list":
-            table = Table(title="bati experiments")
+            table = Table(title="bati experiments (cells: runs at the quick / paper scale; probes: quick)")
             table.add_column("name", no_wrap=True)
-            for column in ("paper", "cells (quick)", "cells (paper)", "probes (quick)", "what"):
-                table.add_column(column)
+            table.add_column("paper", no_wrap=True)
+            for column in ("quick", "paper", "probes"):
+                table.add_column(column, justify="right", no_wrap=True)
+            table.add_column("what", ratio=1)
             for spec in SPECS.values():
                 quick, paper = describe(spec, "quick"), describe(spec, "paper")
                 table.add_row(spec.name, quick["paper"], str(quick["cells"]), str(paper["cells"]),

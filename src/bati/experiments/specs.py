@@ -73,6 +73,8 @@ class Spec:
     extra_metrics: tuple[str, ...] = ()
     """More tables, of numbers a method reports itself (its eval.json's diagnostics, e.g. state_weight)."""
     scales: tuple[str, ...] = SCALES
+    ours: bool = False
+    """Beyond the paper: no table or figure of the paper to compare with."""
     seeds: dict[str, tuple[int, ...]] = field(default_factory=dict)
     """Default seeds per scale where they differ from DEFAULT_SEEDS (a cheap family runs more at quick)."""
 
@@ -194,6 +196,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
               "min(bati, bati-r) + 10% and its return at least max(bati, bati-r) - 5%",
         parts=(Part(("PointGoal",) + MUJOCO, STATE_TERM_METHODS),),
         extra_metrics=("state_weight",),
+        ours=True,
     ),
     Spec(
         name="unknown-tasks",
@@ -208,6 +211,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         metric="p_train_auroc",
         extra_metrics=("p_test_auroc", "p_train_flagged", "p_test_flagged"),
         figures=(),
+        ours=True,
     ),
 )}
 
@@ -324,5 +328,5 @@ def describe(spec: Spec, scale: str = "quick") -> dict:
     n_probes = sum(len(p.families) * len(p.methods) * max(1, len(p.noises)) * len(seeds) * len(p.probes)
                    for p in spec.parts)
     return {"name": spec.name, "title": spec.title, "cells": n_cells, "probes": n_probes, "seeds": len(seeds),
-            "paper": spec.paper.source if spec.paper else "figures only"}
+            "paper": "ours" if spec.ours else spec.paper.source if spec.paper else "figures only"}
 
