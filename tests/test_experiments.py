@@ -111,6 +111,18 @@ def test_unknown_tasks_spec_cells_and_probes():
     assert {c.config.out_dir for c in plan.cells if c.config.train_task_range and c.config.method != "bati-auto"} <= ood
 
 
+def test_refined_inference_spec_and_probe_settings():
+    plan = plan_experiment(get_spec("refined-inference"), "quick", OUT)
+    assert {(c.config.family, c.config.method) for c in plan.cells} == {("PointGoal", "bati-auto"),
+                                                                          ("HopperParam", "bati-auto")}
+    names = [p.name for p in plan.probes[plan.cells[0].id]]
+    assert names == ["final", "N10", "N160", "refine10", "refine50"]
+    with pytest.raises(ProbeError, match="refine_steps must be an integer >= 0"):
+        Probe(refine_steps=-1).check()
+    with pytest.raises(ProbeError, match="latent_samples must be an integer >= 1"):
+        Probe(latent_samples=0).check()
+
+
 def test_spec_filters_and_seed_override():
     cells = configs("main", methods=("bati", "recon"), families=("AntDir",), seeds=(3, 4))
     assert [(c.method, c.seed) for c in cells] == [("bati", 3), ("bati", 4), ("recon", 3), ("recon", 4)]
@@ -240,7 +252,7 @@ def tiny_spec(name: str):
         if len(settings) != len(part.settings):  # PointGoal's parameter is an angle in [0, pi]
             settings += ("train_task_range=[0.0, 1.5]", "test_task_range=[1.5, 3.1]")
         methods = {"interpolated-contexts": ("bati", "recon"), "state-term": ("bati-auto",),
-                   "unknown-tasks": ("bati-auto",)}.get(name, ("bati",))
+                   "unknown-tasks": ("bati-auto",), "refined-inference": ("bati-auto",)}.get(name, ("bati",))
         probes = tuple(dataclasses.replace(p, repeats=2) for p in part.probes)
         families = part.families if name == "kuhn" else ("PointGoal",)  # KuhnPoker is cheap: itself
         parts.append(dataclasses.replace(part, families=families, methods=methods, settings=settings,
@@ -270,7 +282,7 @@ def test_tiny_experiment_end_to_end(tmp_path, name):
     assert all(path.exists() for path in report["files"])
     assert report["cells_done"] == len(plan.cells)
     markdown = report["markdown"]
-    assert f"Experiment `{name}`" in markdown and "| method |" in markdown
+    assert f"Experiment `{name}`" in markdown and f"| {get_spec(name).rows} |" in markdown
     if name == "unknown-tasks":  # AUROC tables, one column per task range
         assert "**p train auroc**" in markdown and "train [0, 1.5), test [1.5, 3.1)" in markdown
     if name == "state-term":  # BATI-auto's calibrated weight is reported beside its returns

@@ -69,6 +69,22 @@ def test_bati_infer_picks_the_table_entry_of_the_true_task():
     assert np.all(np.abs(np.asarray(z)[:, 0] - THETAS[[3, 0, 2, 1]]) < 4 * float(method.std))
 
 
+def test_refined_inference_moves_between_table_entries_towards_the_true_task():
+    table = jnp.zeros((4, 3)).at[:, 0].set(jnp.asarray(THETAS, jnp.float32))
+    params = {"table": table, "dynamics": None}
+    context = toy_transitions([0, 0], n=200, seed=3)  # task 0's actions, but reward offset 0 (between entries)
+    context["rewards"] = context["rewards"] - THETAS[0]  # true theta = 0.0, halfway between -0.7 and 0.7
+    plain, refined = BATI(SPEC), BATI(SPEC, refine_steps=200, refine_learning_rate=0.01)
+    plain.model = refined.model = KnownDynamics()
+    key = jax.random.PRNGKey(0)
+    z0, z1 = np.asarray(plain.infer(params, context, key)), np.asarray(refined.infer(params, context, key))
+    assert np.all(np.abs(z0[:, 0]) > 0.3)  # the arg-min sample lies near an entry (+-0.7, std 0.135)
+    # the posterior mode: 200 transitions of evidence outweigh the table prior (their optimum ~0.01 here)
+    np.testing.assert_allclose(z1[:, 0], 0.0, atol=0.05)
+    np.testing.assert_allclose(z1[:, 1:], 0.0, atol=0.05)  # where the model ignores z, the prior decides: the entries (0)
+    assert float(refined.table_prior(params, table[1])) < float(refined.table_prior(params, jnp.zeros(3)))
+
+
 def _fit(method, steps=300, seed=0):
     params = method.init(jax.random.PRNGKey(seed))
     optimizer = optax.adam(3e-3)

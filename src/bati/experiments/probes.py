@@ -43,6 +43,10 @@ class Probe:
     """Evaluations averaged (the runs' own numbers average their last 5)."""
     novelty: bool = False
     """Instead of returns: unknown-task detection (`bati.inference.novelty`: AUROC, flagged shares)."""
+    refine_steps: int | None = None
+    """BATI's refined inference: gradient steps after Eq. 8's arg-min (default: the method's, 0)."""
+    latent_samples: int | None = None
+    """BATI's N, the table samples Eq. 8 scores (default: the method's, 40)."""
 
     @property
     def name(self) -> str:
@@ -53,6 +57,10 @@ class Probe:
             parts.append(f"C{self.eval_context_length}")
         if self.context_mix is not None:
             parts.append(f"mix{self.context_mix:g}")
+        if self.latent_samples is not None:
+            parts.append(f"N{self.latent_samples}")
+        if self.refine_steps is not None:
+            parts.append(f"refine{self.refine_steps}")
         return "-".join(parts) or "final"
 
     def check(self) -> Probe:
@@ -64,6 +72,10 @@ class Probe:
             raise ProbeError(f"context_mix must be in [0, 1], got {self.context_mix!r}")
         if isinstance(self.repeats, bool) or not isinstance(self.repeats, int) or self.repeats < 1:
             raise ProbeError(f"repeats must be an integer >= 1, got {self.repeats!r}")
+        for name, low in (("refine_steps", 0), ("latent_samples", 1)):
+            value = getattr(self, name)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < low):
+                raise ProbeError(f"{name} must be an integer >= {low}, got {value!r}")
         return self
 
 
@@ -111,6 +123,11 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
     data = load_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
                             tasks=config.task_split())
     trainer = Trainer(config, data)
+    for name, attribute in (("refine_steps", "refine_steps"), ("latent_samples", "num_latent_samples")):
+        if getattr(probe, name) is not None:
+            if not hasattr(trainer.method, attribute):
+                raise ProbeError(f"{name}: method {config.method!r} does not infer from a task table")
+            setattr(trainer.method, attribute, getattr(probe, name))
     state = load_checkpoint(run_dir / "checkpoint.msgpack", trainer.init(jax.random.PRNGKey(0)))
     if int(state.step) != config.steps:
         raise ProbeError(f"{run_dir} is at step {int(state.step)} of {config.steps}: finish the run first")

@@ -213,6 +213,20 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         figures=(),
         ours=True,
     ),
+    Spec(
+        name="refined-inference",
+        title="Beyond the paper: BATI-auto's final checkpoints evaluated with Eq. 8 over N = 10, 40, 160 table "
+              "samples and with 10 or 50 refining gradient steps, on PointGoal and HopperParam (where quick runs learn)",
+        claim="(ours, issue 15) continuous refinement from the arg-min sample finds latents between the table's "
+              "entries and improves the return on test tasks that lie between training tasks",
+        parts=(Part(("PointGoal", "HopperParam"), ("bati-auto",),
+                    probes=(Probe(), Probe(latent_samples=10), Probe(latent_samples=160), Probe(refine_steps=10),
+                            Probe(refine_steps=50))),),
+        rows="family",
+        columns="probe",
+        ours=True,
+        figures=(),
+    ),
 )}
 
 
