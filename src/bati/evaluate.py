@@ -89,9 +89,8 @@ class Evaluator:
         keys = jax.random.split(key, len(self.sources) + 1)
         diagnostics = {}
         if self.method.calibrates:  # its own key: the other methods' draws stay as they were
-            length = min(self.context_length, self.data.train.episode_length)
-            contexts = sample_off_policy_contexts(self.data.train, jax.random.fold_in(key, 0xCA1), length)
-            method_params, diagnostics = self.method.calibrate(method_params, contexts, self.train_distances)
+            method_params, diagnostics = calibrate(self.method, method_params, self.data, self.context_length,
+                                                   jax.random.fold_in(key, 0xCA1), self.train_distances)
         test_arrays = jnp.asarray(self.data.test_task_arrays, jnp.float32)
         latents = {}
         for source, k in zip(self.sources, keys):
@@ -152,6 +151,13 @@ class Evaluator:
             return np.full(len(z), np.nan)
         nearest = np.argmin(((z[:, None, :] - reference[None, :, :]) ** 2).sum(-1), axis=1)
         return self.distances[np.arange(len(z)), nearest]
+
+
+def calibrate(method, params, data: FamilyData, context_length: int, key: jax.Array, train_distances: jax.Array):
+    """A calibrating method's params for inference (see `TaskInference.calibrates`), and its diagnostics:
+    one off-policy window (at most an episode) per training task."""
+    length = min(context_length, data.train.episode_length)
+    return method.calibrate(params, sample_off_policy_contexts(data.train, key, length), train_distances)
 
 
 def reference_returns(data: FamilyData, seed: int = 0) -> dict[str, float]:

@@ -28,10 +28,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bati.data import FamilyData, load_family_data, sample_contexts, sample_off_policy_contexts
+from bati.data import FamilyData, load_family_data, sample_contexts
 from bati.data.batch import TRANSITION_FIELDS
 from bati.envs import get_family
 from bati.errors import BatiError
+from bati.evaluate import calibrate as calibrate_method
 from bati.io import git_commit
 from bati.train import TrainConfig, Trainer, load_checkpoint, read_run_config
 
@@ -70,9 +71,8 @@ def load_run(run_dir: Path, calibrate: bool = True) -> LoadedRun:
     if calibrate and method.calibrates:
         family = get_family(config.family)
         distances = jnp.asarray(family.distance_matrix(data.train_tasks, data.train_tasks), jnp.float32)
-        length = min(config.eval_context_length, data.train.episode_length)
-        windows = sample_off_policy_contexts(data.train, jax.random.PRNGKey(0xCA1), length)
-        params, _ = method.calibrate(params, windows, distances)
+        params, _ = calibrate_method(method, params, data, config.eval_context_length, jax.random.PRNGKey(0xCA1),
+                                     distances)
     return LoadedRun(run_dir, config, data, method, params, int(state.step))
 
 
