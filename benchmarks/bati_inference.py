@@ -16,7 +16,7 @@ import numpy as np
 
 from bati.methods import MethodSpec
 from bati.methods.bati import BATI
-from bati.train import LATENT_DIMS, NET_DIMS
+from bati.envs import get_family
 
 OBS_ACTION = {"PointGoal": (2, 2), "AntDir": (27, 8), "HalfCheetahVel": (17, 6), "HalfCheetahDir": (17, 6),
               "HopperParam": (11, 3), "WalkerParam": (17, 6)}
@@ -28,8 +28,8 @@ def main() -> None:
     parser.add_argument("--context-length", type=int, default=200)
     args = parser.parse_args()
     obs_dim, action_dim = OBS_ACTION[args.family]
-    dims = NET_DIMS.get(args.family, (64, 64))
-    spec = MethodSpec(obs_dim, action_dim, 1, 20, LATENT_DIMS.get(args.family, 5), dims, dims)
+    record = get_family(args.family).record
+    spec = MethodSpec(obs_dim, action_dim, 1, 20, record.latent_dim, record.net_dims, record.net_dims)
     method = BATI(spec)
     params = method.init(jax.random.PRNGKey(0))
     infer = jax.jit(method.infer)

@@ -47,7 +47,7 @@ def main() -> None:
     config = TrainConfig(family=args.family, method=args.method, scale=args.scale).resolved()
     trainer = Trainer(config, data)
     print(f"device: {describe_device()}; jax {jax.__version__}; {args.family} {args.method} {args.scale} "
-          f"({config.task_batch} x {config.batch_size}, IQL {config.rl_hidden_dims})")
+          f"({config.task_batch} x {config.batch_size}, IQL {config.iql.hidden_dims})")
     print("| seeds k | ms per step (all k) | seed-steps / s | vs k = 1 |\n| --- | --- | --- | --- |")
     base = None
     for k in args.seeds:

@@ -55,7 +55,7 @@ def main() -> None:
                 jax.block_until_ready(state)
                 times.append((time.perf_counter() - start) / 20)
             print(f"| {args.family} | {method} | {scale} | {config.task_batch} x {config.batch_size} | "
-                  f"{config.rl_hidden_dims} | {1e3 * np.median(times):.1f} |", flush=True)
+                  f"{config.iql.hidden_dims} | {1e3 * np.median(times):.1f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -289,7 +289,7 @@ CASES = [
     Case("noise -1", lambda e: [*TRAIN, "--noise", "-1", "--data-root", e.data], 2, ("eps=-1",)),
     Case("train --seeds with nothing", lambda e: [*TRAIN, "--seeds", "--data-root", e.data], 2, ("--seeds needs",)),
     Case("run --seeds with nothing", lambda e: ["run", "--seeds", "--data-root", e.data], 2, ("seeds must be",)),
-    Case("negative seed", lambda e: [*TRAIN, "--seed", "-1", "--data-root", e.data], 2, ("integers >= 0", "-1")),
+    Case("negative seed", lambda e: [*TRAIN, "--seed", "-1", "--data-root", e.data], 2, ("integer", ">= 0", "-1")),
     Case("repeated seeds", lambda e: [*TRAIN, "--seeds", "1", "1", "--data-root", e.data], 2, ("distinct",)),
     Case("negative data seed", lambda e: [*TRAIN, "--data-seed", "-2", "--data-root", e.data], 2, ("data_seed", "-2")),
     Case("run --methods all bogus", lambda e: ["run", "--methods", "all", "bogus", "--data-root", e.data], 2,
@@ -518,9 +518,10 @@ KILLS = 10  # random kill points per test, each in the process resumed after the
 TRAIN_SCRIPT = textwrap.dedent("""
     import sys
     from pathlib import Path
+    from bati.rl.iql import IQLConfig
     from bati.train import TrainConfig, train
     config = TrainConfig(family="PointGoal", steps=60, log_every=5, eval_every=20, checkpoint_every=10,
-                         rl_hidden_dims=(32, 32), task_batch=4, batch_size=8, context_length=20,
+                         iql=IQLConfig(hidden_dims=(32, 32)), task_batch=4, batch_size=8, context_length=20,
                          eval_context_length=20, episodes_per_task=2, context_episodes=1,
                          data_root=Path(sys.argv[1]), out_dir=Path(sys.argv[2]))
     train(config, show_progress=False)

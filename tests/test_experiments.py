@@ -43,7 +43,7 @@ def test_main_spec_cells():
     assert {c.family for c in paper} == set(MUJOCO) and {c.method for c in paper} == set(MAIN_METHODS)
     assert {c.seed for c in paper} == {0, 1, 2, 3, 4} and {c.seed for c in quick} == {0}
     first = paper[0]  # the paper variant down to its first cell: Table 3's settings
-    assert (first.scale, first.steps, first.batch_size, first.task_batch, first.rl_hidden_dims) == \
+    assert (first.scale, first.steps, first.batch_size, first.task_batch, first.iql.hidden_dims) == \
         ("paper", 100_000, 256, 16, (256, 256))
     assert all(c.noise == get_family(c.family).default_noise for c in quick)
 
@@ -121,6 +121,17 @@ def test_refined_inference_spec_and_probe_settings():
         Probe(refine_steps=-1).check()
     with pytest.raises(ProbeError, match="latent_samples must be an integer >= 1"):
         Probe(latent_samples=0).check()
+
+
+def test_self_collected_spec_reuses_main_and_state_term_cells():
+    plan = plan_experiment(get_spec("self-collected"), "quick", OUT)
+    methods = ("bati", "bati-r", "recon", "focal", "unicorn", "csro", "oracle", "no-context")
+    assert {(c.config.family, c.config.method) for c in plan.cells} == {(f, m) for f in ("HopperParam", "PointGoal")
+                                                                          for m in methods}
+    assert all([p.name for p in plan.probes[c.id]] == ["final", "self10x3", "self200x3"] for c in plan.cells)
+    trained = {c.out_dir for c in configs("main") + configs("state-term")}
+    assert {c.config.out_dir for c in plan.cells if c.config.family == "HopperParam"} <= trained
+    assert {c.config.out_dir for c in plan.cells if c.config.method in ("bati", "bati-r")} <= trained
 
 
 def test_spec_filters_and_seed_override():
@@ -240,7 +251,7 @@ def test_probe_refuses_a_missing_run(tmp_path):
 
 
 # --- tiny variants end to end (PointGoal stands in for the MuJoCo families) ---------------------
-TINY = ("steps=10", "eval_every=10", "log_every=10", "batch_size=8", "rl_hidden_dims=[32,32]", "task_batch=2",
+TINY = ("steps=10", "eval_every=10", "log_every=10", "batch_size=8", "iql.hidden_dims=[32,32]", "task_batch=2",
         "episodes_per_task=2", "context_episodes=2")
 
 
@@ -253,7 +264,8 @@ def tiny_spec(name: str):
             settings += ("train_task_range=[0.0, 1.5]", "test_task_range=[1.5, 3.1]")
         methods = {"interpolated-contexts": ("bati", "recon"), "state-term": ("bati-auto",),
                    "unknown-tasks": ("bati-auto",), "refined-inference": ("bati-auto",)}.get(name, ("bati",))
-        probes = tuple(dataclasses.replace(p, repeats=2) for p in part.probes)
+        probes = tuple(dataclasses.replace(p, repeats=2) if p.self_collect_every is None else
+                       dataclasses.replace(p, repeats=2, self_collect_episodes=2) for p in part.probes)
         families = part.families if name == "kuhn" else ("PointGoal",)  # KuhnPoker is cheap: itself
         parts.append(dataclasses.replace(part, families=families, methods=methods, settings=settings,
                                          probes=probes))
@@ -277,7 +289,9 @@ def test_tiny_experiment_end_to_end(tmp_path, name):
             if probe.novelty:
                 assert 0.0 <= saved["p_train_auroc"] <= 1.0 and saved["repeats"] == 2
             else:
-                assert len(saved[f"{'mixed' if probe.context_mix is not None else 'p_test'}_returns"]) == 2
+                source = ("self" if probe.self_collect_every is not None else
+                          "mixed" if probe.context_mix is not None else "p_test")
+                assert len(saved[f"{source}_returns"]) == 2
     report = experiment_report(plan, out / name, command=f"bati experiment {name}")
     assert all(path.exists() for path in report["files"])
     assert report["cells_done"] == len(plan.cells)
@@ -285,6 +299,8 @@ def test_tiny_experiment_end_to_end(tmp_path, name):
     assert f"Experiment `{name}`" in markdown and f"| {get_spec(name).rows} |" in markdown
     if name == "unknown-tasks":  # AUROC tables, one column per task range
         assert "**p train auroc**" in markdown and "train [0, 1.5), test [1.5, 3.1)" in markdown
+    if name == "self-collected":  # self-collected returns per probe, the given-context ones beside them
+        assert "**self return**" in markdown and "PointGoal self10x2" in markdown and "PointGoal final" in markdown
     if name == "state-term":  # BATI-auto's calibrated weight is reported beside its returns
         assert "**state weight**" in markdown and "p test inference error" in markdown
     if spec.paper:

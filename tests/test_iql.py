@@ -20,7 +20,7 @@ def test_expectile_loss_matches_hand_computation():
 
 def test_advantage_weights_divide_by_beta_and_clip():
     adv = jnp.array([0.0, 0.05, -0.1, 1.0])
-    w = advantage_weights(adv, beta=0.05, max_weight=100.0)
+    w = advantage_weights(adv, temperature=0.05, max_weight=100.0)
     # exp(A / 0.05): 1, e, e^-2, and exp(20) clipped to 100
     np.testing.assert_allclose(w, [1.0, np.e, np.exp(-2.0), 100.0], rtol=1e-6)
 

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from bati.rl.iql import IQLConfig
 from bati.cli import main
 from bati.envs import FAMILY_NAMES, EPISODE_LENGTH, FamilyUnavailable, TaskError, get_family
 
@@ -302,7 +303,7 @@ def test_every_method_trains_and_evaluates_on_a_small_collection(tmp_path):
     expert_value = np.mean([kuhn.best_response_value(np.array(t)) for t in data.test_tasks])
     for method in sorted(METHODS):
         config = TrainConfig(family="KuhnPoker", method=method, steps=2, log_every=2, eval_every=2,
-                             rl_hidden_dims=(16, 16), task_batch=4, batch_size=8, data_root=tmp_path,
+                             iql=IQLConfig(hidden_dims=(16, 16)), task_batch=4, batch_size=8, data_root=tmp_path,
                              episodes_per_task=2, context_episodes=1, out_dir=tmp_path / "runs" / method)
         summary = train(config, show_progress=False)
         saved = json.loads((tmp_path / "runs" / method / "config.json").read_text())

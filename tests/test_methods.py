@@ -8,8 +8,10 @@ import numpy as np
 import optax
 import pytest
 
+from bati.envs import get_family
 from bati.methods import MethodSpec, make_method
-from bati.methods.bati import BATI
+from bati.methods.csro import CSROConfig
+from bati.methods.bati import BATI, BATIConfig
 from bati.methods.dynamics import reconstruction_nll, transition_targets
 
 SPEC = MethodSpec(obs_dim=2, action_dim=1, task_dim=1, n_train_tasks=4, latent_dim=3,
@@ -74,7 +76,7 @@ def test_refined_inference_moves_between_table_entries_towards_the_true_task():
     params = {"table": table, "dynamics": None}
     context = toy_transitions([0, 0], n=200, seed=3)  # task 0's actions, but reward offset 0 (between entries)
     context["rewards"] = context["rewards"] - THETAS[0]  # true theta = 0.0, halfway between -0.7 and 0.7
-    plain, refined = BATI(SPEC), BATI(SPEC, refine_steps=200, refine_learning_rate=0.01)
+    plain, refined = BATI(SPEC), BATI(SPEC, BATIConfig(refine_steps=200, refine_learning_rate=0.01))
     plain.model = refined.model = KnownDynamics()
     key = jax.random.PRNGKey(0)
     z0, z1 = np.asarray(plain.infer(params, context, key)), np.asarray(refined.infer(params, context, key))
@@ -214,9 +216,13 @@ def test_table3_weights_per_family():
 
     for family, unicorn, club in [("AntDir", 0.15, 5.0), ("HalfCheetahVel", 0.15, 1.0), ("HalfCheetahDir", 0.15, 1.0),
                                   ("HopperParam", 1.5, 2.5), ("WalkerParam", 1.5, 2.5)]:
-        spec = dataclasses.replace(SPEC, family=family)
+        spec = dataclasses.replace(SPEC, family=get_family(family).record)
         assert make_method("unicorn", spec).weight == unicorn
         assert make_method("csro", spec).weight == club
+    # an explicit weight wins over the family's; without a family the record's defaults apply
+    hopper = dataclasses.replace(SPEC, family=get_family("HopperParam").record)
+    assert make_method("csro", hopper, CSROConfig(club_weight=0.5)).weight == 0.5
+    assert make_method("unicorn", SPEC).weight == 0.15 and make_method("csro", SPEC).weight == 1.0
 
 
 def test_unicorn_loss_is_reconstruction_plus_weighted_metric_loss():

@@ -13,7 +13,7 @@ from bati.experiments import sweep as sweep_module
 from bati.experiments.sweep import Grid, SweepError, expand, make_jobs, sweep
 
 TINY = ("steps=10", "eval_every=5", "log_every=5", "task_batch=4", "batch_size=8", "context_length=20",
-        "rl_hidden_dims=[32,32]")
+        "iql.hidden_dims=[32,32]")
 
 
 def test_grid_expands_to_every_cell_with_its_own_directory(tmp_path):

@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 
 import bati.train as train_module
+from bati.rl.iql import IQLConfig
 from bati.envs import FAMILY_NAMES, get_family
 from bati.evaluate import Evaluator
 from bati.methods import METHODS
 from bati.train import TrainConfig, Trainer, TrainingError, train, train_seeds
 
-TINY = dict(rl_hidden_dims=(32, 32), task_batch=4, batch_size=8, context_length=20, log_every=5)
+TINY = dict(iql=IQLConfig(hidden_dims=(32, 32)), task_batch=4, batch_size=8, context_length=20, log_every=5)
 
 
 # KuhnPoker: tests/test_kuhn.py trains every method on a small collected dataset (it needs the games extra)
@@ -132,7 +133,7 @@ def test_a_rerun_with_any_other_setting_is_refused_and_names_it(tmp_path, point_
 
 
 def test_a_checkpoint_with_other_networks_is_refused(tmp_path, point_data):
-    train(_config(tmp_path, "small", steps=5, eval_every=5, rl_hidden_dims=(16, 16)), show_progress=False)
+    train(_config(tmp_path, "small", steps=5, eval_every=5, iql=IQLConfig(hidden_dims=(16, 16))), show_progress=False)
     train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
     (tmp_path / "run" / "checkpoint.msgpack").write_bytes((tmp_path / "small" / "checkpoint.msgpack").read_bytes())
     with pytest.raises(ValueError, match="does not match this run's networks"):
@@ -287,3 +288,26 @@ def test_bad_seed_lists_are_refused_before_any_work(tmp_path, seeds):
     with pytest.raises(ValueError, match="seeds must be distinct"):
         train_seeds(_config(tmp_path, "x"), seeds, show_progress=False, runs_dir=tmp_path / "r")
     assert not (tmp_path / "r").exists()
+
+
+def test_a_tensorboard_sink_mirrors_the_logs(tmp_path, point_data):
+    train(_config(tmp_path, "tb", log_to=("tensorboard",)), show_progress=False)
+    events = list((tmp_path / "tb" / "tensorboard").glob("events.out.tfevents.*"))
+    assert len(events) == 1
+    raw = events[0].read_bytes()
+    assert b"train/representation_loss" in raw and b"eval/p_test_return" in raw
+    # a sink is not part of the run's identity: resuming without it is the same run
+    train(_config(tmp_path, "tb"), show_progress=False)
+
+
+def test_unknown_or_missing_sinks_fail_before_any_work(tmp_path, monkeypatch):
+    import importlib.util
+
+    from bati.sinks import SinkUnavailable
+
+    with pytest.raises(ValueError, match="unknown logging sink 'csv'"):
+        TrainConfig(log_to=("csv",)).resolved()
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "wandb" else real(name, *a))
+    with pytest.raises(SinkUnavailable, match=r"pip install 'bati\[wandb\]'"):
+        TrainConfig(log_to=("wandb",)).resolved()

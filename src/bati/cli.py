@@ -8,7 +8,7 @@ import json
 import sys
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
@@ -18,6 +18,7 @@ from rich.markdown import Markdown
 from rich.markup import escape
 from rich.table import Table
 
+from bati.config import NOT_IDENTITY, TrainConfig
 from bati.envs.base import TaskSplit
 from bati.errors import BatiWarning
 from bati.experiments.sweep import Grid
@@ -51,12 +52,12 @@ class Envs:
     """Per-step noise eps (default: the family's)."""
 
     def run(self) -> None:
-        from bati.envs import FAMILY_NAMES, FamilyUnavailable, get_family
+        from bati.envs import FamilyUnavailable, family_names, get_family
 
         if self.task is not None and not self.family:
             raise UserError("--task needs --family: a task is a parameter of one family "
                             "(e.g. --family PointGoal --task 0.6 0.8)")
-        names = [self.family] if self.family else list(FAMILY_NAMES)
+        names = [self.family] if self.family else list(family_names())
         families, unavailable = [], []
         for name in names:  # a family whose optional extra is missing is listed with its install hint
             try:
@@ -103,7 +104,7 @@ class ExpertsTrain:
 
     family: str
     total_steps: int | None = None
-    """Environment transitions (default: the family's, see bati.experts.train.DEFAULT_STEPS)."""
+    """Environment transitions (default: the family's record, FamilyRecord.expert_steps)."""
     seed: int = 0
     updates_per_step: float = 0.5
     out_dir: Path | None = None
@@ -281,43 +282,48 @@ class Data:
 
 
 @dataclass
-class Train:
-    """Train one method on one family (offline, IQL core), evaluating on p_train / p_test contexts."""
+class Train(TrainConfig):
+    """Train one method on one family (offline, IQL core), evaluating on p_train / p_test contexts.
+    Every setting of the run is an option (each method's under --bati., --csro., ...; IQL's under --iql.);
+    re-running resumes."""
 
-    family: str = "PointGoal"
-    method: str = "bati"
-    """bati, bati-r, recon, unicorn, csro, focal, dpt, oracle or no-context."""
-    seed: int = 0
-    scale: Literal["quick", "paper"] = "quick"
-    steps: int | None = None
-    """Gradient steps (default: quick 3k, paper 100k)."""
-    noise: float | None = None
-    out_dir: Path | None = None
-    """Run directory (default runs/<family>/<scale>/<method>-seed<seed>); re-running resumes. With --seeds:
-    the parent of the runs' directories <method>-seed<s> (default runs/<family>/<scale>)."""
-    data_root: Path = Path("data")
-    data_seed: int = 0
-    """Seed of the collection to train on (its `bati data collect --seed`)."""
     seeds: tuple[int, ...] | None = None
-    """Train several seeds as one program vmapped over them (instead of --seed)."""
+    """Train several seeds as one program vmapped over them (instead of --seed); --out-dir is then the parent
+    of the runs' directories <method>-seed<s> (default runs/<family>/<scale>)."""
+    config: Path | None = None
+    """Rerun the config a run directory recorded (its directory or config.json), exactly; only --out-dir,
+    --data-root and --seeds may be given with it."""
 
     def run(self) -> None:
-        from bati.train import TrainConfig, train_seeds
+        from bati.train import train_seeds
 
         if self.seeds is not None and not self.seeds:
             raise UserError("--seeds needs at least one seed (e.g. --seeds 0 1 2), or leave it out for --seed")
-        config = TrainConfig(family=self.family, method=self.method, seed=self.seed, scale=self.scale,
-                             steps=self.steps, noise=self.noise, out_dir=None if self.seeds else self.out_dir,
-                             data_root=self.data_root, data_seed=self.data_seed)
-        runs_dir = (self.out_dir or Path("runs") / self.family / self.scale) if self.seeds else None
+        config = TrainConfig(**{f.name: getattr(self, f.name) for f in fields(TrainConfig)})
+        if self.config is not None:
+            given = [f.name for f in fields(TrainConfig) if f.name not in NOT_IDENTITY
+                     and getattr(config, f.name) != getattr(TrainConfig(), f.name)]
+            if given:
+                raise UserError(f"--config reruns a recorded config exactly: leave out --{given[0].replace('_', '-')} "
+                                "(only --out-dir, --data-root and --seeds may be given with it)")
+            recorded = TrainConfig.from_file(self.config)
+            config = replace(recorded, out_dir=config.out_dir, data_root=config.data_root if config.data_root !=
+                             TrainConfig().data_root else recorded.data_root)
+        family = config.resolved().family  # checks every setting before any work
+        runs_dir = (config.out_dir or Path("runs") / family / config.scale) if self.seeds else None
+        if self.seeds:
+            config = replace(config, out_dir=None)
         # progress bars only on a terminal: a log file (or a test) gets the result lines, not bar redraws
-        for summary in train_seeds(config, self.seeds or (self.seed,), runs_dir=runs_dir,
+        for summary in train_seeds(config, self.seeds or (config.seed,), runs_dir=runs_dir,
                                    show_progress=console.is_terminal):
-            console.print(
-                f"{self.method} on {self.family}, seed {summary['seed']}: return with p_train contexts "
-                f"{summary['p_train_return']:.1f}, with p_test contexts {summary['p_test_return']:.1f} "
-                f"(mean of the last {summary['evaluations_averaged']} evaluations)"
-            )
+            if "p_test_return" in summary:
+                result = (f"return with p_train contexts {summary['p_train_return']:.1f}, with p_test contexts "
+                          f"{summary['p_test_return']:.1f}")
+            else:  # own data: no env
+                result = (f"held-out task-inference accuracy {summary['held_out_inference_accuracy']:.2f}, held-out "
+                          f"representation loss {summary['held_out_representation_loss']:.3f}")
+            console.print(f"{config.method} on {family}, seed {summary['seed']}: {result} "
+                          f"(mean of the last {summary['evaluations_averaged']} evaluations)")
 
 
 @dataclass

@@ -106,6 +106,12 @@ class Evaluator:
             latents["reference"] = self._infer(method_params, contexts, train_arrays, k_infer)
         return latents, diagnostics
 
+    @staticmethod
+    def status(results: list[EvalResult]) -> str:
+        """The progress bar's line: mean returns over the runs."""
+        return (f"p_test {np.mean([r.returns['p_test'].mean() for r in results]):.1f} "
+                f"p_train {np.mean([r.returns['p_train'].mean() for r in results]):.1f}")
+
     def evaluate(self, state, key, seed: int) -> EvalResult:
         """Evaluate one run's state (env i of the rollout is reset with seed + i)."""
         stacked = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], state)
@@ -184,3 +190,61 @@ def reference_returns(data: FamilyData, seed: int = 0) -> dict[str, float]:
     expert = load(data.family)
     experts = expert_episodes(expert, data.test_tasks, data.test_tasks, data.noise, seed=2000 + seed)
     return {"random": float(random_episodes.returns.mean()), "expert": float(experts.returns.mean())}
+
+
+@dataclass
+class OfflineResult:
+    """Diagnostics of a run on a user's own data (no env, so no returns)."""
+
+    values: dict[str, float]
+
+    def summary(self) -> dict:
+        return dict(self.values)
+
+
+class OfflineEvaluator:
+    """Offline diagnostics for a user's own datasets (`bati.data.own`), which come without an env.
+
+    On the held-out segments of every task: `held_out_inference_accuracy`, the share of held-out contexts
+    (CONTEXTS_PER_TASK per task) whose inferred latent is nearest to their own task's reference latent
+    (BATI: its table entry; encoders: the mean latent of contexts of the task's training data); NaN for a
+    method that infers nothing (no-context). `held_out_representation_loss`: the method's training loss on
+    a batch of held-out data (overfitting shows as a gap to the training loss in metrics.jsonl).
+    BATI-auto is not calibrated here (it scores with Eq. 8's equal weights).
+    """
+
+    CONTEXTS_PER_TASK = 8
+
+    def __init__(self, trainer, data, context_length: int):
+        self.trainer, self.method, self.data = trainer, trainer.method, data
+        self.context_length = context_length
+        self.task_arrays = jnp.asarray(data.train_task_arrays, jnp.float32)
+        self.of_runs = jax.jit(jax.vmap(self._diagnostics))
+
+    def _contexts(self, data, key, ids):
+        contexts = sample_contexts(data, key, ids, self.context_length)
+        return {**contexts, "task_arrays": self.task_arrays[ids]}
+
+    def _diagnostics(self, params, key) -> dict:
+        k_held, k_infer, k_train, k_ref, k_batch, k_context, k_loss = jax.random.split(key, 7)
+        n = self.data.train.n_tasks
+        ids = jnp.repeat(jnp.arange(n), self.CONTEXTS_PER_TASK)
+        z = self.method.infer(params, self._contexts(self.data.held_out, k_held, ids), k_infer)
+        if hasattr(self.method, "task_latents"):
+            references = self.method.task_latents(params)
+        else:
+            own = self.method.infer(params, self._contexts(self.data.train, k_train, ids), k_ref)
+            references = own.reshape(n, self.CONTEXTS_PER_TASK, -1).mean(axis=1)
+        nearest = jnp.argmin(jnp.sum((z[:, None] - references[None]) ** 2, axis=-1), axis=1)
+        accuracy = jnp.mean(nearest == ids) if self.method.infers_task else jnp.nan
+        batch = self.trainer.make_batch(self.data.held_out, k_batch, k_context)
+        loss, _ = self.method.loss(params, batch, k_loss)
+        return {"held_out_inference_accuracy": accuracy, "held_out_representation_loss": loss}
+
+    def evaluate_runs(self, states, keys: jax.Array, seeds: list[int]) -> list[OfflineResult]:
+        values = jax.device_get(self.of_runs(states.method, keys))
+        return [OfflineResult({k: float(v[j]) for k, v in values.items()}) for j in range(len(seeds))]
+
+    @staticmethod
+    def status(results: list[OfflineResult]) -> str:
+        return f"held-out inference accuracy {np.mean([r.values['held_out_inference_accuracy'] for r in results]):.2f}"

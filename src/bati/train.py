@@ -14,9 +14,9 @@ import math
 import os
 import platform
 import time
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal, NamedTuple
+from typing import Any, NamedTuple
 
 import flax
 import jax
@@ -25,11 +25,12 @@ import numpy as np
 import optax
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from bati.config import LATER_FIELDS, NOT_IDENTITY, TrainConfig, differing_settings, family_of
 from bati.data import FamilyData, ensure_family_data, sample_batch, sample_contexts
 from bati.data.batch import TRANSITION_FIELDS
-from bati.envs import TaskSplit
+from bati.data.own import load_own_data
 from bati.errors import BatiError
-from bati.evaluate import Evaluator, reference_returns
+from bati.evaluate import Evaluator, OfflineEvaluator, reference_returns
 from bati.experts import load as load_expert
 from bati.io import (
     LOCK_NAME,
@@ -45,136 +46,14 @@ from bati.io import (
     read_jsonl_lines,
 )
 from bati.methods import MethodSpec, make_method
-from bati.rl.iql import IQL, IQLConfig, IQLState
+from bati.rl.iql import IQL, IQLState
+from bati.sinks import open_sinks
 
-# Table 3, per family (PointGoal follows the reward families).
-LATENT_DIMS = {"HopperParam": 40, "WalkerParam": 40}
-NET_DIMS = {"HopperParam": (128, 128), "WalkerParam": (128, 128)}
-
+__all__ = ["LATER_FIELDS", "NOT_IDENTITY", "TrainConfig", "Trainer", "TrainingError", "differing_settings", "train",
+           "train_seeds"]
 
 class TrainingError(BatiError, RuntimeError):
     """Training cannot go on (e.g. a NaN loss); earlier checkpoints are left untouched."""
-
-
-@dataclass
-class TrainConfig:
-    family: str = "PointGoal"
-    method: str = "bati"
-    seed: int = 0
-    scale: Literal["quick", "paper"] = "quick"
-    steps: int | None = None
-    """Gradient steps (default: paper 100k, quick 3k)."""
-    task_batch: int | None = None
-    """Tasks in a batch (default: Table 3's 16, or all training tasks when there are fewer)."""
-    batch_size: int | None = None
-    """Transitions per task in a batch (default: paper 256, quick 64)."""
-    context_length: int | None = None
-    """Transitions in a training context (encoder methods) and, by default, in an evaluation context
-    (default: the family's, one episode = 200; KuhnPoker 20 = 10 hands)."""
-    eval_context_length: int | None = None
-    """Transitions in an evaluation context (default: context_length; Table 1 evaluates other lengths)."""
-    eval_every: int | None = None
-    checkpoint_every: int | None = None
-    log_every: int = 100
-    noise: float | None = None
-    """The family's eps for data and evaluation (default: the family's)."""
-    data_seed: int = 0
-    data_root: Path = Path("data")
-    out_dir: Path | None = None
-    """Run directory (default: runs/<family>/<scale>/<method>-seed<seed>)."""
-    rl_hidden_dims: tuple[int, ...] | None = None
-    """IQL's hidden dims (default: paper (256, 256) as Table 3, quick (128, 128))."""
-    learning_rate: float = 3e-4
-    iql: IQLConfig = field(default_factory=IQLConfig)
-
-    episodes_per_task: int | None = None
-    """Episodes per training task in the data (default: the scale's; a collection of other sizes needs
-    its own --data-root)."""
-    context_episodes: int | None = None
-    """Episodes per test task in the context data (default: the scale's)."""
-    n_train_tasks: int = 20
-    """Training tasks (App. D.3 splits AntDir's 40 tasks 10/30 and 30/10)."""
-    n_test_tasks: int = 20
-    train_task_range: tuple[float, float] | None = None
-    """Draw the training tasks' parameter uniformly from [LOW, HIGH) (Sec. 5.7: AntDir 0 3.14159)."""
-    test_task_range: tuple[float, float] | None = None
-    """Draw the test tasks' parameter uniformly from [LOW, HIGH) (Sec. 5.7: AntDir 3.14159 6.28319)."""
-
-    @classmethod
-    def from_record(cls, record: dict) -> TrainConfig:
-        """The config a run directory's config.json records (lists back to tuples; `runtime` and keys
-        this version does not know are ignored)."""
-        names = {f.name for f in fields(cls)}
-        values = {k: tuple(v) if isinstance(v, list) else v for k, v in record.items() if k in names}
-        if isinstance(values.get("iql"), dict):
-            iql_names = {f.name for f in fields(IQLConfig)}
-            values["iql"] = IQLConfig(**{k: tuple(v) if isinstance(v, list) else v
-                                         for k, v in values["iql"].items() if k in iql_names})
-        for name in ("data_root", "out_dir"):
-            if values.get(name) is not None:
-                values[name] = Path(values[name])
-        return cls(**values)
-
-    def task_split(self) -> TaskSplit:
-        """The training / test task split of the run's data."""
-        return TaskSplit(self.n_train_tasks, self.n_test_tasks,
-                         None if self.train_task_range is None else tuple(self.train_task_range),
-                         None if self.test_task_range is None else tuple(self.test_task_range))
-
-    def resolved(self) -> TrainConfig:
-        """Every default filled in (an explicit default and None give the same config) and every value
-        checked, before any work: ValueError / TaskError with one line naming the setting."""
-        from bati.envs import get_family
-        from bati.methods import METHODS
-
-        family = get_family(self.family)  # TaskError for an unknown family
-        if self.method not in METHODS:
-            raise ValueError(f"unknown method {self.method!r}; choose one of: {', '.join(METHODS)}")
-        if self.scale not in ("quick", "paper"):
-            raise ValueError(f"unknown scale {self.scale!r}; choose quick or paper")
-        for name in ("steps", "task_batch", "batch_size", "context_length", "eval_context_length", "eval_every",
-                     "checkpoint_every", "log_every", "episodes_per_task", "context_episodes"):
-            value = getattr(self, name)
-            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        for name in ("seed", "data_seed"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
-                raise ValueError(f"{name} must be an integer >= 0, got {getattr(self, name)!r}")
-        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
-            raise ValueError(f"learning_rate must be a finite number > 0, got {self.learning_rate!r}")
-        quick = self.scale == "quick"
-        pick = lambda value, default: default if value is None else value  # noqa: E731
-        steps = pick(self.steps, 3_000 if quick else 100_000)
-        tenth = max(self.log_every, (steps // 10) // self.log_every * self.log_every)
-        eval_every = pick(self.eval_every, tenth)
-        out = pick(self.out_dir, Path("runs") / self.family / self.scale / f"{self.method}-seed{self.seed}")
-        split = self.task_split().checked(family)  # TaskError for a bad count or range
-        context_length = pick(self.context_length, family.default_context_length)
-        resolved = replace(
-            self,
-            noise=family.validate_noise(self.noise),
-            train_task_range=split.train_range,
-            test_task_range=split.test_range,
-            steps=steps,
-            batch_size=pick(self.batch_size, 64 if quick else 256),
-            task_batch=pick(self.task_batch, min(16, split.n_train)),
-            eval_every=eval_every,
-            context_length=context_length,
-            eval_context_length=pick(self.eval_context_length, context_length),
-            checkpoint_every=pick(self.checkpoint_every, eval_every),
-            out_dir=Path(out),
-            data_root=Path(self.data_root),
-            rl_hidden_dims=tuple(pick(self.rl_hidden_dims, (128, 128) if quick else (256, 256))),
-        )
-        resolved.iql = replace(self.iql, hidden_dims=resolved.rl_hidden_dims, learning_rate=self.learning_rate,
-                               discrete=family.discrete_actions)
-        if resolved.task_batch > split.n_train:
-            raise ValueError(f"task_batch ({resolved.task_batch}) must be at most n_train_tasks ({split.n_train}): "
-                             "a batch draws distinct training tasks")
-        if resolved.eval_every % self.log_every or resolved.checkpoint_every % self.log_every:
-            raise ValueError(f"eval_every ({resolved.eval_every}) and checkpoint_every ({resolved.checkpoint_every}) "
-                             f"must be multiples of log_every ({self.log_every})")
-        return resolved
 
 
 class TrainState(NamedTuple):
@@ -191,13 +70,14 @@ class Trainer:
         """`expert` labels actions for methods that imitate one (DPT); default: the family's shipped expert."""
         self.config = config
         self.data = data
-        dims = NET_DIMS.get(config.family, (64, 64))
+        record = family_of(config.family, config.context_length).record
         family_spec = MethodSpec(
             obs_dim=data.obs_dim, action_dim=data.action_dim, task_dim=data.task_dim,
-            n_train_tasks=len(data.train_tasks), latent_dim=LATENT_DIMS.get(config.family, 5),
-            encoder_dims=dims, decoder_dims=dims, family=config.family, discrete_actions=config.iql.discrete,
+            n_train_tasks=len(data.train_tasks), latent_dim=record.latent_dim,
+            encoder_dims=record.net_dims, decoder_dims=record.net_dims, family=record,
+            discrete_actions=config.iql.discrete,
         )
-        self.method = make_method(config.method, family_spec)
+        self.method = make_method(config.method, family_spec, config.method_config())
         self.spec = self.method.spec  # a method may change the latent (Oracle: the task array; DPT: its width)
         self.iql = IQL(data.obs_dim, self.spec.latent_dim, data.action_dim, config.iql)
         self.optimizer = optax.adam(config.learning_rate)
@@ -213,10 +93,9 @@ class Trainer:
         params = self.method.init(k_method)
         return TrainState(params, self.optimizer.init(params), self.iql.init(k_iql), jnp.zeros((), jnp.int32))
 
-    def step(self, state: TrainState, key: jax.Array, data) -> tuple[TrainState, dict]:
-        """One training step: representation loss + IQL on the detached latent."""
+    def make_batch(self, data, k_batch: jax.Array, k_context: jax.Array) -> dict:
+        """A training batch of `data` with what the method's flags ask for (contexts, expert labels)."""
         c = self.config
-        k_batch, k_context, k_loss = jax.random.split(key, 3)
         batch = sample_batch(data, k_batch, c.task_batch, c.batch_size)
         batch["task_arrays"] = self.train_task_arrays[batch["task_ids"]]
         if self.method.needs_context:
@@ -228,6 +107,13 @@ class Trainer:
             task_arrays = jnp.broadcast_to(batch["task_arrays"][:, None], batch["observations"].shape[:2] +
                                            batch["task_arrays"].shape[-1:])
             batch["expert_actions"] = self.expert.mean_action(batch["observations"], task_arrays)
+        return batch
+
+    def step(self, state: TrainState, key: jax.Array, data) -> tuple[TrainState, dict]:
+        """One training step: representation loss + IQL on the detached latent."""
+        c = self.config
+        k_batch, k_context, k_loss = jax.random.split(key, 3)
+        batch = self.make_batch(data, k_batch, k_context)
         (rep_loss, (z, rep_metrics)), grads = jax.value_and_grad(self.method.loss, has_aux=True)(
             state.method, batch, k_loss
         )
@@ -237,7 +123,8 @@ class Trainer:
         if self.method.acts_itself:  # e.g. DPT: no IQL policy to train
             iql_state, iql_metrics = state.iql, {}
         else:
-            flat = {k: batch[k].reshape((-1,) + batch[k].shape[2:]) for k in TRANSITION_FIELDS}
+            flat = {k: batch[k].reshape((-1,) + batch[k].shape[2:]) for k in TRANSITION_FIELDS + ("terminals",)
+                    if k in batch}
             z_flat = jnp.repeat(jax.lax.stop_gradient(z), c.batch_size, axis=0)
             iql_state, iql_metrics = self.iql.update(state.iql, flat, z_flat)
         metrics = {"representation_loss": rep_loss, **rep_metrics, **iql_metrics}
@@ -294,6 +181,8 @@ def _check_paths(configs: list[TrainConfig]) -> None:
     for c in configs:
         check_directory(c.out_dir, "the run directory")
     c = configs[0]
+    if c.datasets:  # a user's own datasets: read, never written
+        return
     collection = store.collection_dir(c.data_root, c.family, c.scale, c.data_seed, c.noise, c.task_split())
     check_directory(c.data_root, "the data root", writable=not (collection / store.MANIFEST).is_file())
 
@@ -315,11 +204,21 @@ def _forgotten_unless_started(out: Path):
 def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict]:
     """train_seeds once its run directories are checked, claimed and locked."""
     config, seeds = configs[0], [c.seed for c in configs]
-    data = ensure_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
-                              n_episodes=config.episodes_per_task, n_context_episodes=config.context_episodes,
-                              progress=show_progress, tasks=config.task_split())
+    if config.datasets:
+        data = load_own_data(config.datasets, config.task_key, config.context_length, config.held_out,
+                             seed=config.data_seed)
+        if config.task_batch > len(data.train_tasks):
+            raise ValueError(f"task_batch ({config.task_batch}) must be at most the {len(data.train_tasks)} tasks of "
+                             "your datasets: give --task-batch")
+    else:
+        data = ensure_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
+                                  n_episodes=config.episodes_per_task, n_context_episodes=config.context_episodes,
+                                  progress=show_progress, tasks=config.task_split())
     trainer = Trainer(config, data)
-    evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length)
+    if config.datasets:
+        evaluator = OfflineEvaluator(trainer, data, config.eval_context_length)
+    else:
+        evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length)
     runs = [_SeedRun.open(c, trainer) for c in configs]
     start = time.perf_counter()
     progress = Progress(
@@ -329,17 +228,23 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict
     )
     with progress:
         bar = progress.add_task("train", total=config.steps, completed=min(r.step for r in runs), status="")
-        while (behind := min(r.step for r in runs)) < config.steps:
-            group = [r for r in runs if r.step == behind]
-            until = min([r.step for r in runs if r.step > behind] + [config.steps])
-            _advance(trainer, evaluator, data, group, until, start, progress, bar)
-    references = reference_returns(data)
+        try:
+            while (behind := min(r.step for r in runs)) < config.steps:
+                group = [r for r in runs if r.step == behind]
+                until = min([r.step for r in runs if r.step > behind] + [config.steps])
+                _advance(trainer, evaluator, data, group, until, start, progress, bar)
+        finally:
+            for run in runs:
+                for sink in run.sinks:
+                    sink.close()
+    references = None if config.datasets else reference_returns(data)
     session = {"device": describe_device(), "jax_version": jax.__version__, "commit": git_commit(),
                "wall_time_s": round(time.perf_counter() - start, 2)}
     summaries = []
     for run in runs:
         summary = {**summarize_run(run.out), "reference_returns": references, **session,
-                   "data": {k: data.manifest.get(k) for k in ("n_episodes", "n_context_episodes", "transitions")}}
+                   "data": {k: data.manifest.get(k) for k in ("n_episodes", "n_context_episodes", "transitions",
+                                                                "transitions_read", "tasks") if k in data.manifest}}
         atomic_write_json(run.out / "eval.json", summary)
         summaries.append(summary)
     return summaries
@@ -360,6 +265,8 @@ class _SeedRun:
     config: TrainConfig
     state: TrainState
     base_key: jax.Array
+    sinks: list = field(default_factory=list)
+    """Optional mirrors of the JSONL logs (TensorBoard, W&B: `--log-to`)."""
 
     @property
     def out(self) -> Path:
@@ -377,7 +284,8 @@ class _SeedRun:
         if (config.out_dir / "checkpoint.msgpack").exists():
             state = _load_checkpoint(config.out_dir / "checkpoint.msgpack", state)
         _drop_records_after(config.out_dir, int(state.step))
-        return cls(config, state, base_key)
+        sinks = open_sinks(config.log_to, config.out_dir, config.record()) if config.log_to else []
+        return cls(config, state, base_key, sinks)
 
 
 def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun], until: int, start: float,
@@ -406,13 +314,16 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
                 raise TrainingError(f"{run.out}: non-finite {', '.join(bad)} at step {step}; the last good "
                                     f"checkpoint (if any) is untouched in {run.out / 'checkpoint.msgpack'}")
             append_jsonl(run.out / "metrics.jsonl", {"step": step, "wall_time": time.perf_counter() - start, **record})
+            for sink in run.sinks:
+                sink.log(step, record, "train")
         if step % c.eval_every == 0 or step == c.steps:
             keys = jnp.stack([jax.random.fold_in(r.base_key, 2 + step) for r in runs])
             results = evaluator.evaluate_runs(states, keys, [r.config.seed * 7919 + step for r in runs])
             for run, result in zip(runs, results):
                 append_jsonl(run.out / "eval.jsonl", {"step": step, **result.summary()})
-            progress.update(bar, status=f"p_test {np.mean([r.returns['p_test'].mean() for r in results]):.1f} "
-                                        f"p_train {np.mean([r.returns['p_train'].mean() for r in results]):.1f}")
+                for sink in run.sinks:
+                    sink.log(step, result.summary(), "eval")
+            progress.update(bar, status=evaluator.status(results))
         if step % c.checkpoint_every == 0 or step == c.steps:
             for run in runs:
                 atomic_write_bytes(run.out / "checkpoint.msgpack", flax.serialization.to_bytes(run.state))
@@ -436,11 +347,15 @@ def summarize_run(out: Path, last: int = 5) -> dict:
     tail = evals[-last:]
     summary = {"family": config["family"], "method": config["method"], "seed": config["seed"],
                "scale": config["scale"], "steps": evals[-1]["step"], "evaluations_averaged": len(tail)}
-    for source in ("p_test", "p_train"):
+    for source in ("p_test", "p_train") if "p_test_return" in evals[-1] else ():  # own data: no env, no returns
         summary[f"{source}_return"] = float(np.mean([e[f"{source}_return"] for e in tail]))
         summary[f"{source}_inference_error"] = float(np.mean([e[f"{source}_inference_error"] for e in tail]))
         summary[f"{source}_task_returns"] = evals[-1][f"{source}_task_returns"]
-    curve_keys = ("step", "p_test_return", "p_train_return", "p_test_inference_error", "p_train_inference_error")
+    for name in ("held_out_inference_accuracy", "held_out_representation_loss"):  # own data's diagnostics
+        if name in evals[-1]:
+            summary[name] = float(np.mean([e[name] for e in tail]))
+    curve_keys = ("step", "p_test_return", "p_train_return", "p_test_inference_error", "p_train_inference_error",
+                  "held_out_inference_accuracy", "held_out_representation_loss")
     summary["curve"] = [{k: e[k] for k in curve_keys if k in e} for e in evals]
     # a method's own numbers (e.g. BATI-auto's calibrated state weight), averaged like the returns
     extra = [k for k, v in evals[-1].items() if k not in curve_keys and isinstance(v, (int, float))
@@ -451,24 +366,9 @@ def summarize_run(out: Path, last: int = 5) -> dict:
     return summary
 
 
-# Where a run lives is not what it is: these fields may differ when a run directory is moved or resumed.
-NOT_IDENTITY = ("out_dir", "data_root")
-# Fields added to TrainConfig after runs were recorded: a saved config without one had this value.
-LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": None, "test_task_range": None}
-
-
-def differing_settings(saved: dict, current: dict, keys) -> list[str]:
-    """The keys whose saved and current values differ (a key added later and absent from the saved
-    config counts as its old value, LATER_FIELDS)."""
-    def old(k):
-        return saved[k] if k in saved else LATER_FIELDS.get(k, saved.get(k))
-
-    return [k for k in keys if old(k) != current.get(k)]
-
-
 def _check_run_dir(out: Path, config: TrainConfig) -> None:
     """A run directory belongs to one resolved config: refuse to resume a run that differs in any setting."""
-    current = json.loads(json.dumps(asdict(config), default=str))
+    current = config.record()
     identity = tuple(k for k in current if k not in NOT_IDENTITY)
     runtime = {"device": describe_device(), "jax_version": jax.__version__, "commit": git_commit()}
     check_run_config(out / "config.json", {**current, "runtime": runtime}, identity, differing_settings)

@@ -40,6 +40,12 @@ class TaskData:
     next_observations: jax.Array  # (n_tasks, n, obs_dim) float32
     collector: jax.Array  # (n_tasks, n) int32: training task whose expert collected the transition
     episode_length: int = flax.struct.field(pytree_node=False, default=EPISODE_LENGTH)
+    terminals: jax.Array | None = None
+    """(n_tasks, n) float32: 1 where the episode terminated at this transition (a user's own data,
+    `bati.data.own`); None: episodes end only by their time limit (every transition bootstraps)."""
+    counts: jax.Array | None = None
+    """(n_tasks,) int32: valid transitions of each task, a multiple of episode_length, the rest padding
+    (a user's own data, whose tasks hold different amounts); None: all n are valid."""
 
     @property
     def n_tasks(self) -> int:
@@ -91,15 +97,26 @@ def sample_batch(data: TaskData, key: jax.Array, task_batch: int, batch_size: in
         )
     k_tasks, k_steps = jax.random.split(key)
     task_ids = jax.random.choice(k_tasks, n_tasks, (task_batch,), replace=False)
-    steps = jax.random.randint(k_steps, (task_batch, batch_size), 0, n)
+    if data.counts is None:
+        steps = jax.random.randint(k_steps, (task_batch, batch_size), 0, n)
+    else:  # uniform over each task's valid transitions
+        steps = _uniform_below(k_steps, (task_batch, batch_size), data.counts[task_ids][:, None])
     rows = task_ids[:, None]
-    return {
+    batch = {
         "task_ids": task_ids,
         "observations": data.observations[rows, steps],
         "actions": data.actions[rows, steps],
         "rewards": data.rewards[rows, steps],
         "next_observations": data.next_observations[rows, steps],
     }
+    if data.terminals is not None:
+        batch["terminals"] = data.terminals[rows, steps]
+    return batch
+
+
+def _uniform_below(key: jax.Array, shape: tuple, high: jax.Array) -> jax.Array:
+    """Integers uniform in [0, high) (high broadcast against `shape`, >= 1)."""
+    return jnp.minimum(jnp.floor(jax.random.uniform(key, shape) * high), high - 1).astype(jnp.int32)
 
 
 @functools.partial(jax.jit, static_argnames=("length",))
@@ -121,7 +138,11 @@ def sample_contexts(data: TaskData, key: jax.Array, task_ids: jax.Array, length:
                          f"({n_episodes} episodes of {episode_length} steps per task)")
     k_episode, k_start = jax.random.split(key)
     shape = task_ids.shape
-    episode = jax.random.randint(k_episode, shape, 0, n_episodes - spanned + 1)
+    if data.counts is None:
+        episode = jax.random.randint(k_episode, shape, 0, n_episodes - spanned + 1)
+    else:  # among each task's valid episodes (at least one: `bati.data.own` keeps no empty task)
+        valid = data.counts[task_ids] // episode_length
+        episode = _uniform_below(k_episode, shape, jnp.maximum(valid - spanned + 1, 1))
     start = jax.random.randint(k_start, shape, 0, max(episode_length - length, 0) + 1)
     steps = (episode * episode_length + start)[..., None] + jnp.arange(length)
     rows = task_ids[..., None]
@@ -143,7 +164,9 @@ def sample_off_policy_contexts(data: TaskData, key: jax.Array, length: int) -> d
         raise ValueError(f"an off-policy context holds 1 to {episode_length} transitions, got {length}")
     firsts = data.collector[:, ::episode_length][:, :n_episodes]  # (n_tasks, n_episodes) collectors
     foreign = firsts != jnp.arange(data.n_tasks)[:, None]
-    foreign = jnp.where(foreign.any(axis=1, keepdims=True), foreign, True)
+    valid = True if data.counts is None else jnp.arange(n_episodes)[None] < (data.counts // episode_length)[:, None]
+    foreign = foreign & valid
+    foreign = jnp.where(foreign.any(axis=1, keepdims=True), foreign, valid)
     k_episode, k_start = jax.random.split(key)
     episode = jax.random.categorical(k_episode, jnp.where(foreign, 0.0, -jnp.inf), axis=1)
     start = jax.random.randint(k_start, episode.shape, 0, episode_length - length + 1)

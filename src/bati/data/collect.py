@@ -33,34 +33,47 @@ from typing import Any
 import numpy as np
 
 from bati.data import store
-from bati.envs import EPISODE_LENGTH, Task, TaskFamily, TaskSplit, get_family
+from bati.envs import FAMILY_NAMES, Task, TaskFamily, TaskSplit, get_family
 from bati.io import atomic_write_json, check_directory, git_commit, hold_lock
 
 N_TRAIN = 20
 N_TEST = 20
 OTHER_FRACTION = 0.1
-# Episodes per task. `paper`: App. C Table 3 "Dataset Size" read as transitions PER TASK
-# (AntDir 1e5 = 500 episodes of 200 steps, HalfCheetah 2e5 = 1000, Hopper/Walker 3e5 = 1500).
+# Episodes per training task and per context dataset. `paper`: the family's own size
+# (FamilyRecord.paper_episodes: App. C Table 3 "Dataset Size" read as transitions PER TASK).
 SCALES: dict[str, dict[str, Any]] = {
     "quick": {"n_episodes": 20, "n_context_episodes": 5},
-    "paper": {
-        "n_episodes": {"AntDir": 500, "HalfCheetahVel": 1000, "HalfCheetahDir": 1000, "HopperParam": 1500,
-                       "WalkerParam": 1500, "PointGoal": 500,
-                       "KuhnPoker": 500},  # 50,000 hands per task (the paper does not give Kuhn's size)
-        "n_context_episodes": 20,
-    },
+    "paper": {"n_episodes": "paper_episodes", "n_context_episodes": 20},
 }
 CHUNK = 256  # envs stepped in lockstep (fixed: the stochastic actions depend on it)
 _PLAN_STREAM = 0xDA7A  # separates the plan's random stream from split_tasks(seed)'s
 
 
-def scale_sizes(family: str, scale: str) -> tuple[int, int]:
-    """(n_episodes per training task, n_context_episodes per test task) of a scale."""
+def scale_sizes(family: str | TaskFamily, scale: str) -> tuple[int, int]:
+    """(n_episodes per training task, n_context_episodes per test task) of a scale (a size given as a
+    FamilyRecord field's name is the family's own)."""
     if scale not in SCALES:
         raise ValueError(f"unknown scale {scale!r}; choose one of: {', '.join(SCALES)}")
-    sizes = SCALES[scale]
-    n = sizes["n_episodes"]
-    return int(n[family] if isinstance(n, dict) else n), int(sizes["n_context_episodes"])
+    record = (get_family(family) if isinstance(family, str) else family).record
+    sizes = {k: getattr(record, v) if isinstance(v, str) else v for k, v in SCALES[scale].items()}
+    return int(sizes["n_episodes"]), int(sizes["n_context_episodes"])
+
+
+def check_supported(family: TaskFamily) -> None:
+    """ValueError (one line) for a family whose episodes can end early: collection, the datasets and
+    IQL's bootstrapping assume every episode runs its full `episode_length` steps."""
+    if family.record.terminates:
+        raise ValueError(f"{family.name}: families whose episodes end early (FamilyRecord.terminates) are not "
+                         "supported yet: datasets store fixed-length episodes and IQL bootstraps every transition")
+
+
+def _from_plugin(name: str) -> bool:
+    """Whether family `name` comes from an installed package's entry point (so a spawned process finds it)."""
+    from importlib.metadata import entry_points
+
+    from bati.envs import PLUGIN_GROUP
+
+    return any(entry.name == name for entry in entry_points(group=PLUGIN_GROUP))
 
 
 def n_minority(n: int) -> int:
@@ -164,9 +177,10 @@ def collect(
     start = time.perf_counter()
     workers = check_workers(workers)
     fam = get_family(family)
+    check_supported(fam)
     noise = fam.validate_noise(noise)
     tasks = (tasks or TaskSplit()).checked(fam)
-    default_n, default_ctx = scale_sizes(family, scale)
+    default_n, default_ctx = scale_sizes(fam, scale)
     n_episodes = default_n if n_episodes is None else int(n_episodes)
     n_context_episodes = default_ctx if n_context_episodes is None else int(n_context_episodes)
     target = store.collection_dir(root, family, scale, seed, noise, tasks)
@@ -179,13 +193,16 @@ def collect(
     plan = make_plan(fam, seed, n_episodes, n_context_episodes, tasks)
     n_chunks = -(-plan.n_episodes // CHUNK)
     workers = min(default_workers() if workers is None else workers, n_chunks)
+    if fam.name not in FAMILY_NAMES and not _from_plugin(fam.name):  # spawned workers would not know it
+        workers = 1
     load_start = time.perf_counter()
     expert = load_expert(family, zoo_dir)  # FileNotFoundError naming `bati experts train --family X`
     timings = {"expert_load_s": time.perf_counter() - load_start}
     probe = fam.make_env(plan.train_tasks[0], noise)
     obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
     probe.close()
-    if (expert.meta["obs_dim"], expert.meta["action_dim"]) != (obs_dim, action_dim):
+    # a trained expert records its sizes; a scripted one (register_expert) may not
+    if (expert.meta.get("obs_dim", obs_dim), expert.meta.get("action_dim", action_dim)) != (obs_dim, action_dim):
         raise ValueError(
             f"the {family} expert reads obs_dim={expert.meta['obs_dim']} / writes action_dim="
             f"{expert.meta['action_dim']}, but the env has {obs_dim} / {action_dim}; retrain it with "
@@ -217,7 +234,7 @@ def collect(
                 **base_meta,
                 "n_episodes": n_episodes,
                 "n_context_episodes": n_context_episodes,
-                "episode_length": EPISODE_LENGTH,
+                "episode_length": fam.record.episode_length,
                 "obs_dim": obs_dim,
                 "action_dim": action_dim,
                 "task_dim": fam.task_dim,
@@ -228,7 +245,7 @@ def collect(
                 "p_test_most_different": plan.most_different,
                 "p_train_most_similar": plan.most_similar,
                 "datasets": {s: [d.name for d in plan.datasets if d.split == s] for s in store.SPLITS},
-                "transitions": plan.n_episodes * EPISODE_LENGTH,
+                "transitions": plan.n_episodes * fam.record.episode_length,
                 "expert": {"train_steps": expert.meta.get("train_steps"), "seed": expert.meta.get("seed")},
                 "collect_wall_time_s": round(time.perf_counter() - start, 2),
                 "workers": workers,  # how it was made, not what it is: not part of the cache identity
@@ -276,7 +293,7 @@ def collection_settings(family: TaskFamily, scale: str, seed: int, noise: float,
 
     actor = Path(zoo_dir or ZOO_DIR) / family.name / "actor.msgpack"
     return {"family": family.name, "scale": scale, "seed": seed, "noise": noise, "n_episodes": n_episodes,
-            "n_context_episodes": n_context_episodes, "episode_length": EPISODE_LENGTH, "chunk": CHUNK,
+            "n_context_episodes": n_context_episodes, "episode_length": family.record.episode_length, "chunk": CHUNK,
             "other_fraction": OTHER_FRACTION, "task_split": tasks.record(),
             "expert_sha256": store.sha256_file(actor) if actor.is_file() else None}
 
@@ -373,9 +390,9 @@ def _rollout_chunk(family: TaskFamily, expert, noise: float, seed: int, chunk: _
     envs = pool[:k_envs]
     policy_tasks = np.zeros((chunk_size, family.task_dim), np.float32)  # padded: one jit shape
     policy_tasks[:k_envs] = chunk.policy_tasks
-    obs = np.zeros((k_envs, EPISODE_LENGTH + 1, envs[0].observation_space.shape[0]))
-    actions = np.zeros((k_envs, EPISODE_LENGTH, envs[0].action_space.shape[0]), np.float32)
-    rewards = np.zeros((k_envs, EPISODE_LENGTH), np.float32)
+    obs = np.zeros((k_envs, family.record.episode_length + 1, envs[0].observation_space.shape[0]))
+    actions = np.zeros((k_envs, family.record.episode_length, envs[0].action_space.shape[0]), np.float32)
+    rewards = np.zeros((k_envs, family.record.episode_length), np.float32)
     for k, env in enumerate(envs):
         env.unwrapped.set_task(chunk.tasks[k])
         obs[k, 0] = env.reset(seed=chunk.reset_seeds[k])[0]
@@ -385,7 +402,7 @@ def _rollout_chunk(family: TaskFamily, expert, noise: float, seed: int, chunk: _
         base_key = jax.random.fold_in(jax.random.PRNGKey(seed), _PLAN_STREAM)
         chunk_key = jax.random.fold_in(base_key, chunk.index)
         padded = np.zeros((chunk_size, obs.shape[-1]), np.float32)
-        for t in range(EPISODE_LENGTH):
+        for t in range(family.record.episode_length):
             padded[:k_envs] = obs[:, t]
             step_key = jax.random.fold_in(chunk_key, t)
             act = expert.act_from_arrays(padded, policy_tasks, False, step_key)
@@ -475,7 +492,7 @@ def run_collection(
 
     bar = _progress(progress, f"{family.name} data")
     with bar:
-        task_id = bar.add_task("collect", total=len(jobs) * EPISODE_LENGTH)
+        task_id = bar.add_task("collect", total=len(jobs) * family.record.episode_length)
         if workers == 1:
             pool: list = []
             try:
@@ -488,7 +505,7 @@ def run_collection(
                     env.close()
         else:
             _run_parallel(family, chunks, chunk_size, noise, seed, workers, zoo_dir, consume,
-                          lambda n: bar.advance(task_id, n * EPISODE_LENGTH))
+                          lambda n: bar.advance(task_id, n * family.record.episode_length))
     return {"rollout_s": time.perf_counter() - start - write_s, "write_s": write_s}
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from bati.envs.base import EPISODE_LENGTH, Task, TaskError, TaskFamily, TaskSplit
+from bati.envs.base import EPISODE_LENGTH, FamilyRecord, Task, TaskError, TaskFamily, TaskSplit
 from bati.errors import BatiError
 
 # family name -> (module, family class, env class); modules are imported lazily so that
@@ -24,6 +24,8 @@ _FAMILIES = {
     "KuhnPoker": ("bati.envs.kuhn", "KuhnPokerFamily", "KuhnPokerEnv"),
 }
 FAMILY_NAMES = tuple(_FAMILIES)
+"""The built-in families (`family_names()` adds the ones registered with `register_family`)."""
+_REGISTERED: dict[str, type[TaskFamily]] = {}
 # families that need an optional extra: name -> (module it imports, extra, what it is, its pip package)
 _EXTRAS = {"KuhnPoker": ("pyspiel", "games", "OpenSpiel", "open_spiel")}
 
@@ -41,16 +43,66 @@ def family_available(name: str) -> bool:
     return True
 
 
+PLUGIN_GROUP = "bati.families"
+"""Entry-point group of installed packages' families: each entry point is a function that calls
+`register_family` (and `bati.experts.register_expert`); loaded the first time a name is not found."""
+_plugins_loaded = False
+
+
+def _load_plugins() -> None:
+    global _plugins_loaded
+    if _plugins_loaded:
+        return
+    _plugins_loaded = True
+    from importlib.metadata import entry_points
+
+    for entry in entry_points(group=PLUGIN_GROUP):
+        entry.load()()
+
+
+def family_names() -> tuple[str, ...]:
+    """Every family `get_family` knows: the built-in ones, then those registered (in this process or by an
+    installed package's `bati.families` entry point)."""
+    _load_plugins()
+    return FAMILY_NAMES + tuple(n for n in _REGISTERED if n not in _FAMILIES)
+
+
 def _check_name(name: str) -> None:
-    if name not in _FAMILIES:
-        raise TaskError(f"unknown task family {name!r}; choose one of: {', '.join(FAMILY_NAMES)}")
+    if name not in _FAMILIES and name not in _REGISTERED:
+        _load_plugins()
+    if name not in _FAMILIES and name not in _REGISTERED:
+        raise TaskError(f"unknown task family {name!r}; choose one of: {', '.join(family_names())}")
+
+
+def register_family(family_class: type[TaskFamily], env_entry_point) -> None:
+    """Make a family of your own known by name in this process (docs/extending.md): `get_family(name)`,
+    every `bati` API that takes a family name, and ``gymnasium.make("bati/<name>-v0", task=..., noise=...)``
+    (`env_entry_point`: the env class or "module:Class", kept as that string because the datasets'
+    Minari metadata records it; its episodes are cut at the record's `episode_length`). Registering the
+    same class again is a no-op."""
+    record = getattr(family_class, "record", None)
+    if not isinstance(record, FamilyRecord):
+        raise TypeError(f"{family_class.__name__} has no FamilyRecord `record`: see docs/extending.md")
+    name = record.name
+    if name in _FAMILIES or _REGISTERED.get(name, family_class) is not family_class:
+        raise ValueError(f"a family called {name!r} already exists; give yours another name")
+    if isinstance(env_entry_point, type):
+        env_entry_point = f"{env_entry_point.__module__}:{env_entry_point.__qualname__}"
+    if not isinstance(env_entry_point, str):
+        raise TypeError(f"env_entry_point must be the env class or 'module:Class', got {env_entry_point!r}")
+    _REGISTERED[name] = family_class
+    env_id = f"bati/{name}-v0"
+    if env_id not in gym.registry:
+        gym.register(id=env_id, entry_point=env_entry_point, max_episode_steps=record.episode_length)
 
 
 def get_family(name: str) -> TaskFamily:
-    """The task family called `name` (one of FAMILY_NAMES)."""
+    """The task family called `name` (one of `family_names()`)."""
     import importlib
 
     _check_name(name)
+    if name in _REGISTERED:
+        return _REGISTERED[name]()
     module, family_class, _ = _FAMILIES[name]
     try:
         loaded = importlib.import_module(module)
@@ -87,6 +139,7 @@ def _quiet_mujoco_deprecation() -> None:
 
 
 def _register() -> None:
+    # every built-in family's record says episode_length = EPISODE_LENGTH (tests/test_config.py checks it)
     for name, (module, _, env_class) in _FAMILIES.items():
         env_id = f"bati/{name}-v0"
         if env_id not in gym.registry:
@@ -96,5 +149,5 @@ def _register() -> None:
 _register()
 _quiet_mujoco_deprecation()
 
-__all__ = ["EPISODE_LENGTH", "FAMILY_NAMES", "FamilyUnavailable", "Task", "TaskError", "TaskFamily", "TaskSplit",
-           "family_available", "get_family", "make_env"]
+__all__ = ["EPISODE_LENGTH", "FAMILY_NAMES", "FamilyRecord", "FamilyUnavailable", "Task", "TaskError", "TaskFamily",
+           "TaskSplit", "family_available", "family_names", "get_family", "make_env", "register_family"]

@@ -25,29 +25,85 @@ class TaskError(ValueError):
     """A task, noise level or family name outside what the family allows."""
 
 
-class TaskFamily(abc.ABC):
-    """A family of tasks: sampling, distance (App. C.2), validation and env construction.
+@dataclass(frozen=True)
+class FamilyRecord:
+    """Everything that differs per task family, in one place (Table 3 and our own choices).
 
-    Subclasses set the class attributes and implement the abstract methods. Families are
-    stateless; randomness always comes from an explicit seed or generator.
+    A family module defines one record beside its env; every module reads the family's settings from
+    it (the network sizes of `bati.train`, the dataset sizes of `bati.data`, the expert's budget,
+    the per-family weights of UNICORN and CSRO). Adding a family is one env file plus one record:
+    docs/extending.md.
     """
 
     name: str
-    task_space: str  # human-readable description, shown by `bati envs` and in errors
-    task_dim: int  # length of `task_to_array(task)`
-    default_noise: float  # the family's default eps ("high noise" setting)
-    noise_meaning: str  # what eps perturbs, for docs and `bati envs`
+    task_space: str
+    """Human-readable description of a task, shown by `bati envs` and in errors."""
+    task_dim: int
+    """Length of `task_to_array(task)` (what task-conditioned networks read)."""
+    default_noise: float
+    """The family's default eps (the paper's "high noise" setting)."""
+    noise_meaning: str
+    """What eps perturbs, for docs and `bati envs`."""
     max_noise: float = math.inf
-    kind: str = "reward"  # "reward" (tasks differ in R_M), "dynamics" (in P_M) or "opponent" (KuhnPoker: both)
-    discrete_actions: bool = False
-    """Actions are one of `action_space.shape[0]` choices, stored one-hot (IQL's categorical actor)."""
-    default_context_length: int = EPISODE_LENGTH
-    """Transitions in a context unless a run says otherwise (one episode; KuhnPoker: 10 hands = 20)."""
-    return_unit: str = "episode"
-    """What an evaluation return sums over: an episode of 200 steps, or (KuhnPoker) one hand."""
+    kind: str = "reward"
+    """"reward" (tasks differ in R_M), "dynamics" (in P_M) or "opponent" (KuhnPoker: both)."""
     parameter_range: tuple[float, float] | None = None
     """The interval of the scalar parameter a task is drawn uniformly from, for families whose tasks
     have one (AntDir's angle, a target velocity, a log-friction); None: no task ranges (Table 2)."""
+    discrete_actions: bool = False
+    """Actions are one of `action_space.shape[0]` choices, stored one-hot (IQL's categorical actor)."""
+    episode_length: int = EPISODE_LENGTH
+    """Steps of an episode (the env's time limit)."""
+    terminates: bool = False
+    """Whether an episode can end before its time limit (no family of the paper does: every
+    transition bootstraps in IQL)."""
+    context_length: int = EPISODE_LENGTH
+    """Transitions in a context unless a run says otherwise (one episode; KuhnPoker: 10 hands = 20)."""
+    return_unit: str = "episode"
+    """What an evaluation return sums over: an episode, or (KuhnPoker) one hand."""
+    latent_dim: int = 5
+    """Table 3: the task latent's size (reward families 5, Hopper / Walker 40)."""
+    net_dims: tuple[int, ...] = (64, 64)
+    """Table 3: hidden sizes of the context encoders and the dynamics decoders."""
+    paper_episodes: int = 500
+    """Episodes per training task at the paper scale (Table 3's "Dataset Size", read per task)."""
+    expert_steps: int | None = None
+    """Environment transitions for its SAC expert (None: the family's expert is not a SAC)."""
+    unicorn_weight: float = 0.15
+    """Table 3: UNICORN's weight of the FOCAL term."""
+    club_weight: float = 1.0
+    """Table 3: CSRO's weight of the CLUB term."""
+
+
+def record_default(field_name: str):
+    """A FamilyRecord field's default (what a method uses when it is built without a family)."""
+    return FamilyRecord.__dataclass_fields__[field_name].default
+
+
+# The TaskFamily attributes that come from its record (kept as attributes: `family.default_noise`).
+RECORD_ATTRIBUTES = ("name", "task_space", "task_dim", "default_noise", "noise_meaning", "max_noise", "kind",
+                     "parameter_range", "discrete_actions", "return_unit")
+
+
+class TaskFamily(abc.ABC):
+    """A family of tasks: sampling, distance (App. C.2), validation and env construction.
+
+    Subclasses set `record` (their FamilyRecord) and implement the abstract methods. Families are
+    stateless; randomness always comes from an explicit seed or generator.
+    """
+
+    record: FamilyRecord
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        record = cls.__dict__.get("record")
+        if record is not None:  # a concrete family: its record's facts readable as attributes
+            for attribute in RECORD_ATTRIBUTES:
+                setattr(cls, attribute, getattr(record, attribute))
+
+    @property
+    def default_context_length(self) -> int:
+        return self.record.context_length
 
     @property
     def env_id(self) -> str:
@@ -128,7 +184,7 @@ class TaskFamily(abc.ABC):
 
     # --- environments ------------------------------------------------------------------
     def make_env(self, task: Task, noise: float | None = None, **kwargs: Any) -> gym.Env:
-        """A time-limited (200 steps) env of this task with per-step noise eps."""
+        """A time-limited (`record.episode_length` steps) env of this task with per-step noise eps."""
         return gym.make(self.env_id, task=self.validate_task(task), noise=self.validate_noise(noise), **kwargs)
 
     def exact_returns(self, act, tasks: Sequence[Task], noise: float | None) -> np.ndarray | None:

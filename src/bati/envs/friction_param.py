@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from bati.envs.base import TaskEnvMixin, TaskFamily, scalar_task
+from bati.envs.base import FamilyRecord, TaskEnvMixin, TaskFamily, scalar_task
 
 FRICTION_BASE = 1.5
 CONTROL_COST = 1e-3
@@ -47,13 +47,26 @@ def inverse_action_map(mapped: np.ndarray, log_friction: float) -> np.ndarray:
     return out
 
 
+def log_friction_record(name: str, expert_steps: int) -> FamilyRecord:
+    """The record HopperParam and WalkerParam share (Table 3's dynamics families)."""
+    return FamilyRecord(
+        name=name,
+        task_space="a log-friction coefficient m in [-3, 3] (friction scale 1.5**m)",
+        task_dim=1,
+        default_noise=1.0,
+        noise_meaning="std of the Gaussian noise added to the log-friction at every step (friction and action map)",
+        kind="dynamics",
+        parameter_range=(-LOG_FRICTION_RANGE, LOG_FRICTION_RANGE),
+        latent_dim=40,
+        net_dims=(128, 128),
+        paper_episodes=1500,  # Table 3: 3e5 transitions per task
+        expert_steps=expert_steps,
+        unicorn_weight=1.5,
+        club_weight=2.5,
+    )
+
+
 class LogFrictionFamily(TaskFamily):
-    task_space = "a log-friction coefficient m in [-3, 3] (friction scale 1.5**m)"
-    task_dim = 1
-    default_noise = 1.0
-    noise_meaning = "std of the Gaussian noise added to the log-friction at every step (friction and action map)"
-    kind = "dynamics"
-    parameter_range = (-LOG_FRICTION_RANGE, LOG_FRICTION_RANGE)
 
     def _sample(self, n, rng):
         return [float(x) for x in rng.uniform(-LOG_FRICTION_RANGE, LOG_FRICTION_RANGE, size=n)]

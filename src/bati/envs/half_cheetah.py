@@ -12,18 +12,22 @@ from __future__ import annotations
 import numpy as np
 from gymnasium.envs.mujoco.half_cheetah_v5 import HalfCheetahEnv
 
-from bati.envs.base import TaskEnvMixin, TaskError, TaskFamily, scalar_task
+from bati.envs.base import FamilyRecord, TaskEnvMixin, TaskError, TaskFamily, scalar_task
 
 CONTROL_COST = 0.05
 
 
 class HalfCheetahVelFamily(TaskFamily):
-    name = "HalfCheetahVel"
-    task_space = "a target velocity in [0, 2]"
-    task_dim = 1
-    default_noise = 1.0
-    noise_meaning = "std of the Gaussian noise added to the target velocity at every step"
-    parameter_range = (0.0, 2.0)
+    record = FamilyRecord(
+        name="HalfCheetahVel",
+        task_space="a target velocity in [0, 2]",
+        task_dim=1,
+        default_noise=1.0,
+        noise_meaning="std of the Gaussian noise added to the target velocity at every step",
+        parameter_range=(0.0, 2.0),
+        paper_episodes=1000,  # Table 3: 2e5 transitions per task
+        expert_steps=300_000,
+    )
 
     def _sample(self, n, rng):
         return [float(x) for x in rng.uniform(0.0, 2.0, size=n)]
@@ -36,12 +40,16 @@ class HalfCheetahVelFamily(TaskFamily):
 
 
 class HalfCheetahDirFamily(TaskFamily):
-    name = "HalfCheetahDir"
-    task_space = "a direction in {-1.0 (left), +1.0 (right)}"
-    task_dim = 1
-    default_noise = 0.8
-    noise_meaning = "probability that a step's reward uses a uniformly random direction instead of the true one"
-    max_noise = 1.0
+    record = FamilyRecord(
+        name="HalfCheetahDir",
+        task_space="a direction in {-1.0 (left), +1.0 (right)}",
+        task_dim=1,
+        default_noise=0.8,
+        noise_meaning="probability that a step's reward uses a uniformly random direction instead of the true one",
+        max_noise=1.0,
+        paper_episodes=1000,  # Table 3: 2e5 transitions per task
+        expert_steps=200_000,
+    )
 
     def _sample(self, n, rng):
         return [float(x) for x in rng.choice([-1.0, 1.0], size=n)]

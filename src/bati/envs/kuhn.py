@@ -43,7 +43,7 @@ except ImportError as err:  # the `games` extra; bati.envs.get_family turns this
 
 import gymnasium as gym
 
-from bati.envs.base import EPISODE_LENGTH, TaskEnvMixin, TaskError, TaskFamily
+from bati.envs.base import EPISODE_LENGTH, FamilyRecord, TaskEnvMixin, TaskError, TaskFamily
 
 HANDS_PER_EPISODE = EPISODE_LENGTH // 2
 PASS, BET = 0, 1
@@ -153,17 +153,21 @@ def action_index(action) -> int:
 
 
 class KuhnPokerFamily(TaskFamily):
-    name = "KuhnPoker"
-    task_space = ("an opponent (player 2): probabilities [bet with J, Q, K when checked to, "
-                  "call a bet with J, Q, K], each in [0, 1]")
-    task_dim = 6
-    default_noise = 0.0
-    max_noise = 1.0
-    noise_meaning = "probability that each opponent action is uniformly random instead of its policy's"
-    kind = "opponent"  # the opponent's policy changes both the transitions and the rewards
-    discrete_actions = True
-    default_context_length = 20  # 10 hands (App. D.4)
-    return_unit = "hand"
+    record = FamilyRecord(
+        name="KuhnPoker",
+        task_space=("an opponent (player 2): probabilities [bet with J, Q, K when checked to, "
+                    "call a bet with J, Q, K], each in [0, 1]"),
+        task_dim=6,
+        default_noise=0.0,
+        max_noise=1.0,
+        noise_meaning="probability that each opponent action is uniformly random instead of its policy's",
+        kind="opponent",  # the opponent's policy changes both the transitions and the rewards
+        discrete_actions=True,
+        context_length=20,  # 10 hands (App. D.4)
+        return_unit="hand",
+        paper_episodes=500,  # 50,000 hands per task (the paper does not give Kuhn's size)
+        expert_steps=None,  # the exact best response (bati.experts.kuhn), computed
+    )
 
     def _sample(self, n, rng):
         return [[float(x) for x in row] for row in rng.uniform(0.0, 1.0, size=(n, 6))]

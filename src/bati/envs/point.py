@@ -11,19 +11,23 @@ import math
 import gymnasium as gym
 import numpy as np
 
-from bati.envs.base import TaskEnvMixin, TaskError, TaskFamily
+from bati.envs.base import FamilyRecord, TaskEnvMixin, TaskError, TaskFamily
 
 STEP_SIZE = 0.1  # position change per step at full action
 POSITION_BOUND = 2.0
 
 
 class PointGoalFamily(TaskFamily):
-    name = "PointGoal"
-    task_space = "a goal [cos(angle), sin(angle)], angle in [0, pi]"
-    task_dim = 2
-    default_noise = 1.0
-    noise_meaning = "std of the Gaussian noise added to the goal (both coordinates) at every step"
-    parameter_range = (0.0, math.pi)  # the goal's angle
+    record = FamilyRecord(
+        name="PointGoal",
+        task_space="a goal [cos(angle), sin(angle)], angle in [0, pi]",
+        task_dim=2,
+        default_noise=1.0,
+        noise_meaning="std of the Gaussian noise added to the goal (both coordinates) at every step",
+        parameter_range=(0.0, math.pi),  # the goal's angle
+        paper_episodes=500,  # ours (not in the paper): AntDir's size
+        expert_steps=20_000,
+    )
 
     def task_from_parameter(self, value):
         return [float(np.cos(value)), float(np.sin(value))]

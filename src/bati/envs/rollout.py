@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bati.envs.base import EPISODE_LENGTH, Task, TaskFamily
+from bati.envs.base import Task, TaskFamily
 
 # act(observations (N, obs_dim), step) -> actions (N, act_dim)
 ActFn = Callable[[np.ndarray, int], np.ndarray]
@@ -22,7 +22,7 @@ class Episodes:
     rewards: np.ndarray
     next_observations: np.ndarray
     noise_free_rewards: np.ndarray
-    tasks_used: np.ndarray  # the per-step noisy task the reward / dynamics used
+    """The reward without the step's noise (the env's info["reward_noise_free"]; the reward if it gives none)."""
 
     @property
     def returns(self) -> np.ndarray:
@@ -39,9 +39,9 @@ def rollout(
     act: ActFn,
     noise: float | None,
     seed: int | Sequence[int],
-    length: int = EPISODE_LENGTH,
+    length: int | None = None,
 ) -> Episodes:
-    """Roll out `act` for one episode in each task.
+    """Roll out `act` for one episode (`length` steps, default: the family's episode length) in each task.
 
     `seed`: an int (env i is reset with seed + i) or one reset seed per task.
     """
@@ -50,8 +50,8 @@ def rollout(
         raise ValueError(f"{len(reset_seeds)} reset seeds for {len(tasks)} tasks")
     envs = [family.make_env(task, noise) for task in tasks]
     observations = np.stack([env.reset(seed=int(s))[0] for s, env in zip(reset_seeds, envs)])
-    record: dict[str, list] = {k: [] for k in ("obs", "act", "rew", "next", "free", "used")}
-    for step in range(length):
+    record: dict[str, list] = {k: [] for k in ("obs", "act", "rew", "next", "free")}
+    for step in range(family.record.episode_length if length is None else length):
         actions = np.asarray(act(observations, step), dtype=np.float32)
         results = [env.step(a) for env, a in zip(envs, actions)]
         next_observations = np.stack([r[0] for r in results])
@@ -59,12 +59,9 @@ def rollout(
         record["act"].append(actions)
         record["rew"].append([r[1] for r in results])
         record["next"].append(next_observations)
-        record["free"].append([r[4]["reward_noise_free"] for r in results])
-        record["used"].append([np.ravel(r[4]["task_used"]) for r in results])
+        record["free"].append([r[4].get("reward_noise_free", r[1]) for r in results])
         observations = next_observations
     for env in envs:
         env.close()
     stack = {k: np.swapaxes(np.asarray(v, dtype=np.float32), 0, 1) for k, v in record.items()}
-    return Episodes(
-        stack["obs"], stack["act"], stack["rew"], stack["next"], stack["free"], stack["used"]
-    )
+    return Episodes(stack["obs"], stack["act"], stack["rew"], stack["next"], stack["free"])

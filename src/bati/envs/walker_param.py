@@ -2,11 +2,11 @@
 
 from gymnasium.envs.mujoco.walker2d_v5 import Walker2dEnv
 
-from bati.envs.friction_param import LogFrictionEnvMixin, LogFrictionFamily
+from bati.envs.friction_param import LogFrictionEnvMixin, LogFrictionFamily, log_friction_record
 
 
 class WalkerParamFamily(LogFrictionFamily):
-    name = "WalkerParam"
+    record = log_friction_record("WalkerParam", expert_steps=600_000)
 
 
 class WalkerParamEnv(LogFrictionEnvMixin, Walker2dEnv):

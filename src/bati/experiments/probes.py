@@ -8,7 +8,9 @@ needs retraining: a probe loads the run's config and final checkpoint, evaluates
     <run>/probes/<name>.json          returns and inference errors per source (mean, std over repeats)
     <run>/probes/<name>-latents.npz   the first repeat's inferred latents (t-SNE of Fig. 6)
 
-The `novelty` probe measures unknown-task detection instead (`bati.inference.novelty`).
+The `novelty` probe measures unknown-task detection instead (`bati.inference.novelty`), and a probe with
+`self_collect_every` = k evaluates with self-collected contexts instead of given ones (`bati.online`:
+no context; z re-inferred from the policy's own last C transitions every k steps; keys `self_*`).
 A probe that is already on disk for the same run step and settings is read back, not redone.
 """
 
@@ -47,6 +49,10 @@ class Probe:
     """BATI's refined inference: gradient steps after Eq. 8's arg-min (default: the method's, 0)."""
     latent_samples: int | None = None
     """BATI's N, the table samples Eq. 8 scores (default: the method's, 40)."""
+    self_collect_every: int | None = None
+    """Instead of given contexts: self-collected ones, z re-inferred every this many steps (`bati.online`)."""
+    self_collect_episodes: int = 1
+    """Consecutive episodes per task of a self-collected evaluation (z and the transitions carry over)."""
 
     @property
     def name(self) -> str:
@@ -61,6 +67,9 @@ class Probe:
             parts.append(f"N{self.latent_samples}")
         if self.refine_steps is not None:
             parts.append(f"refine{self.refine_steps}")
+        if self.self_collect_every is not None:
+            episodes = f"x{self.self_collect_episodes}" if self.self_collect_episodes != 1 else ""
+            parts.append(f"self{self.self_collect_every}{episodes}")
         return "-".join(parts) or "final"
 
     def check(self) -> Probe:
@@ -72,10 +81,15 @@ class Probe:
             raise ProbeError(f"context_mix must be in [0, 1], got {self.context_mix!r}")
         if isinstance(self.repeats, bool) or not isinstance(self.repeats, int) or self.repeats < 1:
             raise ProbeError(f"repeats must be an integer >= 1, got {self.repeats!r}")
-        for name, low in (("refine_steps", 0), ("latent_samples", 1)):
+        for name, low in (("refine_steps", 0), ("latent_samples", 1), ("self_collect_every", 1),
+                          ("self_collect_episodes", 1)):
             value = getattr(self, name)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < low):
                 raise ProbeError(f"{name} must be an integer >= {low}, got {value!r}")
+        if self.self_collect_every is None and self.self_collect_episodes != 1:
+            raise ProbeError("self_collect_episodes needs self_collect_every (the re-inference interval)")
+        if self.self_collect_every is not None and (self.context_mix is not None or self.novelty):
+            raise ProbeError("self_collect_every replaces the given contexts: leave context_mix and novelty unset")
         return self
 
 
@@ -137,9 +151,25 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
     states = jax.tree_util.tree_map(lambda x: jnp.stack([jnp.asarray(x)] * k), state)
     base = jax.random.fold_in(jax.random.PRNGKey(config.seed), 0x9B0E)
     keys = jnp.stack([jax.random.fold_in(base, i) for i in range(k)])
-    results = evaluator.evaluate_runs(states, keys, [50_000 + 1000 * i + config.seed for i in range(k)])
+    seeds = [50_000 + 1000 * i + config.seed for i in range(k)]
     out = {"probe": asdict(probe), "run_dir": str(run_dir), "family": config.family, "method": config.method,
            "seed": config.seed, "step": config.steps, "context_length": length}
+    if probe.self_collect_every is not None:
+        from bati.online import OnlineError, SelfCollector
+
+        try:
+            collector = SelfCollector(evaluator, probe.self_collect_every, probe.self_collect_episodes)
+        except OnlineError as err:
+            raise ProbeError(str(err)) from err
+        collected = collector.run(states, keys, seeds)
+        out.update(collected.summary(), train_tasks=data.train_tasks, test_tasks=data.test_tasks,
+                   commit=git_commit(), wall_time_s=round(time.perf_counter() - start, 2))
+        path = probe_path(run_dir, probe)
+        atomic_save_npz(path.with_name(f"{probe.name}-latents.npz"), final=collected.latents[0],
+                        prior=collected.prior_latents[0], reference=collected.reference[0])
+        atomic_write_json(path, out)
+        return out
+    results = evaluator.evaluate_runs(states, keys, seeds)
     for source in evaluator.sources:
         returns = np.array([r.returns[source].mean() for r in results])
         errors = np.array([np.nanmean(r.inference_errors[source]) if np.isfinite(r.inference_errors[source]).any()

@@ -31,6 +31,8 @@ STATE_TERM_METHODS = ("bati", "bati-r", "bati-auto")
 # The methods of the paper's ablation tables (Tables 1, 2, 5 and Figs. 5, 7), and our reward-only BATI.
 ABLATION_METHODS = ("bati", "bati-r", "csro", "focal", "recon", "unicorn")
 DEFAULT_SEEDS = {"quick": (0,), "paper": (0, 1, 2, 3, 4)}
+# Self-collected context: main's methods but DPT (its causal transformer reads a repeated window as a sequence).
+SELF_COLLECT_METHODS = ("bati", "bati-r", "recon", "focal", "unicorn", "csro", "oracle", "no-context")
 
 
 class ExperimentError(BatiError, ValueError):
@@ -65,7 +67,7 @@ class Spec:
     parts: tuple[Part, ...]
     rows: str = "method"
     columns: str = "family"
-    """Record keys of the table: method, family, noise, split, context_length, context_mix."""
+    """Record keys of the table: method, family, noise, split, context_length, context_mix, probe, family_probe."""
     metric: str = "p_test_return"
     paper: PaperTable | None = None
     figures: tuple[str, ...] = ("curves",)
@@ -224,6 +226,23 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
                             Probe(refine_steps=50))),),
         rows="family",
         columns="probe",
+        ours=True,
+        figures=(),
+    ),
+    Spec(
+        name="self-collected",
+        title="Beyond the paper: no given context. Each test task's policy starts from a prior latent (a random "
+              "training task's) and re-infers z from its own last C = 200 transitions every k = 10 or 200 steps, "
+              "for 3 episodes (z carries over), beside the given p_test / p_train contexts; HopperParam and PointGoal",
+        claim="(ours, issue 15) BATI's likelihood does not care who acted, so its self-collected return approaches its "
+              "given-context return; an encoder meets a behaviour it was not trained on (its own policy's)",
+        parts=(Part(("HopperParam", "PointGoal"), SELF_COLLECT_METHODS,
+                    probes=(Probe(),) + tuple(Probe(self_collect_every=k, self_collect_episodes=3)
+                                              for k in (10, 200))),),
+        columns="family_probe",
+        metric="self_return",
+        extra_metrics=("self_ep2_return", "self_ep3_return", "p_test_return", "p_train_return",
+                       "self_prior_inference_error", "self_inference_error", "p_test_inference_error"),
         ours=True,
         figures=(),
     ),

@@ -22,17 +22,17 @@ import socket
 import time
 import traceback
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
 from bati.errors import BatiError
 from bati.io import atomic_write_json
-from bati.train import LATER_FIELDS, NOT_IDENTITY, TrainConfig, differing_settings
+from bati.config import NOT_IDENTITY, TrainConfig, apply_settings, differing_settings, digest_view, settable_names
 
 AXES = ("family", "method", "seed", "scale", "noise")
 """Grid axes; every other TrainConfig field can be set for all cells with `overrides`."""
-NOT_OVERRIDABLE = AXES + ("out_dir", "data_root", "iql")
+NOT_OVERRIDABLE = AXES + ("out_dir", "data_root")
 
 
 class SweepError(BatiError, ValueError):
@@ -51,11 +51,13 @@ class Grid:
     """Per-step noise levels eps (empty: each family's default)."""
     scales: tuple[Literal["quick", "paper"], ...] = ("quick",)
     settings: tuple[str, ...] = ()
-    """KEY=VALUE TrainConfig settings for every cell, e.g. `steps=12000 context_length=50` (values as JSON)."""
+    """KEY=VALUE TrainConfig settings for every cell, e.g. `steps=12000 context_length=50
+    iql.hidden_dims=[64,64] csro.club_weight=3` (values as JSON)."""
 
     def overrides(self) -> dict[str, Any]:
-        """The settings as TrainConfig keyword arguments (SweepError for a malformed or unknown one)."""
-        names = {f.name for f in fields(TrainConfig)}
+        """The settings as {TrainConfig field or `section.field`: value} (SweepError for a malformed or
+        unknown one)."""
+        names = settable_names()
         out: dict[str, Any] = {}
         for item in self.settings:
             key, sep, text = item.partition("=")
@@ -63,9 +65,10 @@ class Grid:
             if not sep or not key:
                 raise SweepError(f"setting {item!r} is not KEY=VALUE")
             if key not in names:
-                raise SweepError(f"unknown setting {key!r}; settable: "
-                                 f"{', '.join(n for n in sorted(names) if n not in NOT_OVERRIDABLE)}")
-            if key in NOT_OVERRIDABLE:
+                plain = sorted(n for n in names if "." not in n and n not in NOT_OVERRIDABLE)
+                raise SweepError(f"unknown setting {key!r}; settable: {', '.join(plain)}, and SECTION.FIELD of "
+                                 f"{', '.join(dict.fromkeys(n.partition('.')[0] for n in sorted(names) if '.' in n))}")
+            if key.partition(".")[0] in NOT_OVERRIDABLE:
                 raise SweepError(f"{key} cannot be set per cell: use the grid's axes (families, methods, seeds, "
                                  "noises, scales), --out-dir and --data-root")
             try:
@@ -95,16 +98,11 @@ class Cell:
 
 
 def config_digest(config: TrainConfig, exclude: Iterable[str] = ()) -> str:
-    """A short stable digest of a config's settings (JSON with sorted keys). Fields added later
-    (LATER_FIELDS) count only when they differ from their old value, so older digests stay valid."""
-    settings = {k: v for k, v in config_record(config).items() if k not in set(exclude)
-                and not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
+    """A short stable digest of a config's settings (JSON with sorted keys). Settings added later count
+    only when they differ from their old value, renamed ones under their old names (`digest_view`), so
+    older digests stay valid."""
+    settings = {k: v for k, v in digest_view(config.record()).items() if k not in set(exclude)}
     return hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:10]
-
-
-def config_record(config: TrainConfig) -> dict:
-    """The config as its run directory's config.json records it."""
-    return json.loads(json.dumps(asdict(config), default=str))
 
 
 def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Cell]:
@@ -126,8 +124,8 @@ def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Ce
                 for noise in noises:
                     for method in methods:
                         for seed in dict.fromkeys(grid.seeds):
-                            config = TrainConfig(family=family, method=method, seed=seed, scale=scale, noise=noise,
-                                                 data_root=data_root, **overrides).resolved()
+                            config = apply_settings(TrainConfig(family=family, method=method, seed=seed, scale=scale,
+                                                                noise=noise, data_root=data_root), overrides).resolved()
                             cells.append(Cell(replace(config, out_dir=run_dir(out_dir, config))))
     except (ValueError, TypeError) as err:  # TaskError is a ValueError
         raise SweepError(str(err)) from err
@@ -147,7 +145,7 @@ def is_done(cell: Cell) -> bool:
         saved = json.loads(path.read_text()).get("config", {})
     except (OSError, ValueError, AttributeError):
         return False
-    current = config_record(cell.config)
+    current = cell.config.record()
     return isinstance(saved, dict) and not differing_settings(saved, current, [k for k in current if k not in NOT_IDENTITY])
 
 

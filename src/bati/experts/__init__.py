@@ -1,5 +1,5 @@
 """Expert (context-collection) policies: a task-conditioned SAC per family."""
 
-from bati.experts.zoo import Expert, ExpertPolicy, load
+from bati.experts.zoo import Expert, ExpertPolicy, load, register_expert
 
-__all__ = ["Expert", "ExpertPolicy", "load"]
+__all__ = ["Expert", "ExpertPolicy", "load", "register_expert"]

@@ -17,28 +17,20 @@ import jax
 import numpy as np
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from bati.envs import EPISODE_LENGTH, get_family
+from bati.envs import get_family
 from bati.envs.rollout import rollout
 from bati.experts.sac import SAC, SACConfig, state_from_bytes, state_to_bytes
 from bati.experts.zoo import save_expert
 from bati.io import append_jsonl, atomic_save_npz, check_run_config
 
-# Environment transitions per family (App. C.2 gives none; chosen by measured learning curves).
-DEFAULT_STEPS = {
-    "PointGoal": 20_000,
-    "HalfCheetahVel": 300_000,
-    "HalfCheetahDir": 200_000,
-    "AntDir": 600_000,
-    "HopperParam": 400_000,
-    "WalkerParam": 600_000,
-}
 
 
 @dataclass
 class ExpertTrainConfig:
     family: str
     total_steps: int | None = None
-    """Environment transitions (default: per family, see DEFAULT_STEPS)."""
+    """Environment transitions (default: the family's FamilyRecord.expert_steps; App. C.2 gives none:
+    chosen by measured learning curves)."""
     num_envs: int = 4
     updates_per_step: float = 0.5
     """SAC updates per environment transition (env steps are cheap next to updates on CPU)."""
@@ -55,10 +47,11 @@ class ExpertTrainConfig:
     sac: SACConfig = field(default_factory=SACConfig)
 
     def resolved(self) -> ExpertTrainConfig:
-        if get_family(self.family).discrete_actions:  # validates the name early, too
-            raise ValueError(f"{self.family}'s expert is the exact best response (bati.experts.kuhn), computed "
-                             "when needed: there is no SAC expert to train")
-        total = self.total_steps or DEFAULT_STEPS[self.family]
+        record = get_family(self.family).record  # validates the name early, too
+        if record.expert_steps is None:
+            raise ValueError(f"{self.family}'s expert is not a SAC (KuhnPoker: the exact best response, "
+                             "bati.experts.kuhn, computed when needed): there is no SAC expert to train")
+        total = self.total_steps or record.expert_steps
         if total <= 0 or self.num_envs <= 0 or self.updates_per_step < 0:
             raise ValueError("total_steps and num_envs must be positive, updates_per_step >= 0")
         out = self.out_dir or Path("runs/experts") / self.family
@@ -109,7 +102,7 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
     key, init_key = jax.random.split(key)
     state = sac.init(init_key)
     rng = np.random.default_rng(config.seed)
-    buffer = ReplayBuffer(config.total_steps + config.num_envs * EPISODE_LENGTH, obs_dim, family.task_dim, action_dim)
+    buffer = ReplayBuffer(config.total_steps + config.num_envs * family.record.episode_length, obs_dim, family.task_dim, action_dim)
     episode, wall_time = 0, 0.0
     _check_config(out, config)
     if (out / "checkpoint.npz").exists():
@@ -134,7 +127,7 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
                 obs.append(env.reset(seed=config.seed * 1_000_003 + episode * config.num_envs + i)[0])
             obs = np.stack(obs).astype(np.float32)
             metrics = {}
-            for _ in range(EPISODE_LENGTH):
+            for _ in range(family.record.episode_length):
                 if steps < config.start_steps:
                     actions = rng.uniform(-1.0, 1.0, size=(config.num_envs, action_dim)).astype(np.float32)
                 else:
@@ -153,7 +146,7 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
                     state, metrics = sac.update_many(state, batches, update_key)
             episode += 1
             progress.update(bar, completed=min(steps, config.total_steps))
-            crossed = lambda every: steps // every > (steps - config.num_envs * EPISODE_LENGTH) // every
+            crossed = lambda every: steps // every > (steps - config.num_envs * family.record.episode_length) // every
             if crossed(config.eval_every) or steps >= config.total_steps:
                 last_eval = evaluate_expert(sac, state.actor, family, config.eval_tasks, seed=12345)
                 record = {"steps": steps, "episode": episode, "wall_time": time.perf_counter() - start,

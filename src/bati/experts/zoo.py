@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -78,17 +79,33 @@ def save_expert(directory: Path, family_name: str, actor_params: Any, meta: dict
     atomic_write_json(directory / "expert.json", {"family": family_name, **meta})
 
 
-def load(family_name: str, zoo_dir: str | Path | None = None) -> ExpertPolicy:
-    """The shipped (or `zoo_dir`'s) expert of a family (KuhnPoker: exact best responses, nothing shipped)."""
+def _kuhn_best_responses() -> Expert:
+    from bati.experts.kuhn import BestResponseExpert
+
+    return BestResponseExpert("KuhnPoker")
+
+
+# Families whose expert is computed or scripted rather than a trained SAC: name -> factory.
+_EXPERT_FACTORIES: dict[str, Callable[[], Expert]] = {"KuhnPoker": _kuhn_best_responses}
+
+
+def register_expert(family_name: str, factory: Callable[[], Expert]) -> None:
+    """Give a family an expert that is not a trained SAC (a scripted or exact policy): `factory()` returns
+    an `Expert`. `load(family_name)` then returns it instead of looking in the zoo (docs/extending.md)."""
+    get_family(family_name)  # unknown family -> TaskError
+    _EXPERT_FACTORIES[family_name] = factory
+
+
+def load(family_name: str, zoo_dir: str | Path | None = None) -> Expert:
+    """The shipped (or `zoo_dir`'s) expert of a family, or the one `register_expert` gave it
+    (KuhnPoker: exact best responses, nothing shipped)."""
     from bati.experts.sac import SAC, SACConfig
 
     directory = Path(zoo_dir or ZOO_DIR) / family_name
     meta_path = directory / "expert.json"
     get_family(family_name)  # unknown family -> TaskError
-    if family_name == "KuhnPoker":  # exact best responses, computed (bati.experts.kuhn): nothing to load
-        from bati.experts.kuhn import BestResponseExpert
-
-        return BestResponseExpert(family_name)
+    if family_name in _EXPERT_FACTORIES:  # computed or scripted: nothing to load
+        return _EXPERT_FACTORIES[family_name]()
     if not meta_path.exists():
         raise FileNotFoundError(
             f"no expert for {family_name} in {directory}; train one with `bati experts train --family {family_name}`"

@@ -16,10 +16,12 @@ METHODS = {"bati": BATI, "bati-r": BATIReward, "bati-auto": BATIAuto, "recon": R
            "focal": FOCAL, "dpt": DPT, "oracle": Oracle, "no-context": NoContext}
 
 
-def make_method(name: str, spec: MethodSpec) -> TaskInference:
+def make_method(name: str, spec: MethodSpec, config=None) -> TaskInference:
+    """Method `name` for data described by `spec`, with its hyperparameters `config` (an instance of
+    its `Config`; default: the Config's defaults, family-dependent ones from `spec.family`)."""
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; choose one of: {', '.join(METHODS)}")
-    return METHODS[name](spec)
+    return METHODS[name](spec, config)
 
 
 __all__ = ["METHODS", "MethodSpec", "TaskInference", "make_method"]

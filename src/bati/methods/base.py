@@ -17,9 +17,11 @@ tasks) and expert_actions (T, B, action_dim). Contexts given to `infer` also hol
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
+
+from bati.envs.base import FamilyRecord
 
 
 @dataclass(frozen=True)
@@ -34,12 +36,20 @@ class MethodSpec:
     encoder_dims: tuple[int, ...]
     decoder_dims: tuple[int, ...]
     discrete_actions: bool = False
-    family: str = ""
-    """The task family's name, for per-family weights of Table 3 (empty: the reward families')."""
+    family: FamilyRecord | None = None
+    """The task family's record, for per-family settings of Table 3 (None: the record's defaults)."""
 
 
 class TaskInference:
-    """Base class: the flags tell the training step what to put into the batch."""
+    """Base class: the flags tell the training step what to put into the batch.
+
+    A method with hyperparameters declares them as a frozen dataclass `Config` (every field with a
+    typed default); `config_key` names the TrainConfig field that holds it (`bati train --csro.club-weight
+    2.5`), shared by variants of one method (bati, bati-r and bati-auto all read `bati`).
+    """
+
+    Config: ClassVar[type | None] = None
+    config_key: ClassVar[str | None] = None
 
     needs_context: bool = False
     """`loss` reads batch["context"]: a context of each batch task, from its training data."""
@@ -56,8 +66,12 @@ class TaskInference:
     with one off-policy context per training task (another task's expert collected it) and the
     training tasks' distance matrix; `infer` then receives the returned params (BATI-auto)."""
 
-    def __init__(self, spec: MethodSpec):
+    def __init__(self, spec: MethodSpec, config: Any = None):
         self.spec = spec
+        if self.Config is not None:
+            config = self.Config() if config is None else config
+            config = config.for_family(spec.family) if hasattr(config, "for_family") else config
+        self.config = config
 
     def init(self, key: jax.Array) -> Any:
         raise NotImplementedError

@@ -16,6 +16,8 @@ training tasks) as far as the context's evidence says. Probes set it on finished
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import jax
 import jax.numpy as jnp
 import optax
@@ -23,20 +25,38 @@ import optax
 from bati.methods.base import MethodSpec, TaskInference
 from bati.methods.dynamics import DynamicsModel, context_nll, context_nll_terms, init_dynamics
 
-EMBEDDING_LOG_VAR = -4.0
+@dataclass(frozen=True)
+class BATIConfig:
+    """BATI's hyperparameters (shared by bati, bati-r and bati-auto)."""
+
+    latent_samples: int = 40
+    """N: table samples scored by Eq. 8 at test time."""
+    embedding_log_var: float = -4.0
+    """Fixed log-variance of each task embedding's Gaussian (Sec. 4)."""
+    refine_steps: int = 0
+    """Refined inference (ours): Adam steps on the posterior of z after Eq. 8's arg-min (0: the paper's BATI)."""
+    refine_learning_rate: float = 0.01
+
+    def check(self) -> None:
+        """ValueError (one line) for settings BATI cannot run with."""
+        if isinstance(self.latent_samples, bool) or not isinstance(self.latent_samples, int) or self.latent_samples < 1:
+            raise ValueError(f"bati.latent_samples must be an integer >= 1, got {self.latent_samples!r}")
+        if isinstance(self.refine_steps, bool) or not isinstance(self.refine_steps, int) or self.refine_steps < 0:
+            raise ValueError(f"bati.refine_steps must be an integer >= 0, got {self.refine_steps!r}")
 
 
 class BATI(TaskInference):
+    Config = BATIConfig
+    config_key = "bati"
     reward_only_inference = False
 
-    def __init__(self, spec: MethodSpec, num_latent_samples: int = 40, refine_steps: int = 0,
-                 refine_learning_rate: float = 0.01):
-        super().__init__(spec)
-        self.num_latent_samples = num_latent_samples
-        self.refine_steps = refine_steps
-        self.refine_learning_rate = refine_learning_rate
+    def __init__(self, spec: MethodSpec, config: BATIConfig | None = None):
+        super().__init__(spec, config)
+        self.num_latent_samples = self.config.latent_samples
+        self.refine_steps = self.config.refine_steps
+        self.refine_learning_rate = self.config.refine_learning_rate
         self.model = DynamicsModel(spec.decoder_dims, 1 + spec.obs_dim)
-        self.std = jnp.exp(0.5 * EMBEDDING_LOG_VAR)
+        self.std = jnp.exp(0.5 * self.config.embedding_log_var)
 
     def init(self, key):
         k_table, k_model = jax.random.split(key)

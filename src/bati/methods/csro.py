@@ -12,18 +12,29 @@ weight lambda per family.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 from functools import partial
 
 import jax
 import jax.numpy as jnp
 
+from bati.envs.base import FamilyRecord, record_default
 from bati.methods.base import MethodSpec
-from bati.methods.focal import FOCAL
+from bati.methods.focal import FOCAL, FOCALConfig
 from bati.nets import GaussianHead, gaussian_log_prob
 
-CLUB_WEIGHTS = {"AntDir": 5.0, "HopperParam": 2.5, "WalkerParam": 2.5}
-DEFAULT_CLUB_WEIGHT = 1.0  # HalfCheetahVel, HalfCheetahDir (and PointGoal)
-CLUB_HIDDEN_DIMS = (200, 200, 200)
+
+@dataclass(frozen=True)
+class CSROConfig(FOCALConfig):
+    club_weight: float | None = None
+    """lambda, the CLUB term's weight (default: the family's, Table 3: FamilyRecord.club_weight)."""
+    club_hidden_dims: tuple[int, ...] = (200, 200, 200)
+    """Hidden sizes of the variational network q(z | s, a) (Table 3: 200 x 3)."""
+
+    def for_family(self, record: FamilyRecord | None) -> CSROConfig:
+        if self.club_weight is not None:
+            return self
+        return replace(self, club_weight=record.club_weight if record else record_default("club_weight"))
 
 
 def club_estimate(log_q: Callable, z: jax.Array, x: jax.Array, x_negative: jax.Array) -> jax.Array:
@@ -32,10 +43,13 @@ def club_estimate(log_q: Callable, z: jax.Array, x: jax.Array, x_negative: jax.A
 
 
 class CSRO(FOCAL):
-    def __init__(self, spec: MethodSpec):
-        super().__init__(spec)
-        self.club_net = GaussianHead(CLUB_HIDDEN_DIMS, spec.latent_dim)
-        self.weight = CLUB_WEIGHTS.get(spec.family, DEFAULT_CLUB_WEIGHT)
+    Config = CSROConfig
+    config_key = "csro"
+
+    def __init__(self, spec: MethodSpec, config: CSROConfig | None = None):
+        super().__init__(spec, config)
+        self.club_net = GaussianHead(tuple(self.config.club_hidden_dims), spec.latent_dim)
+        self.weight = self.config.club_weight
 
     def init(self, key):
         k_enc, k_club = jax.random.split(key)

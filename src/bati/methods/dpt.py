@@ -14,6 +14,7 @@ every query and every prefix length.
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 
 import flax.linen as nn
 import jax
@@ -23,18 +24,25 @@ from bati.envs import EPISODE_LENGTH
 from bati.methods.base import MethodSpec, TaskInference
 from bati.nets import MLP, GaussianHead, gaussian_log_prob
 
-MODEL_DIM = 64
-NUM_LAYERS = 2
-NUM_HEADS = 4
+@dataclass(frozen=True)
+class DPTConfig:
+    """The size of DPT's causal transformer."""
+
+    model_dim: int = 64
+    """Width of the transformer (and of DPT's latent: the last position's summary)."""
+    num_layers: int = 2
+    num_heads: int = 4
+    max_length: int = EPISODE_LENGTH
+    """Longest context the learned positions cover."""
 
 
 class CausalTransformer(nn.Module):
     """Pre-norm transformer over transitions: (..., C, in) -> (..., C, model_dim), position j sees 0..j."""
 
-    model_dim: int = MODEL_DIM
-    num_layers: int = NUM_LAYERS
-    num_heads: int = NUM_HEADS
-    max_length: int = EPISODE_LENGTH
+    model_dim: int = DPTConfig.model_dim
+    num_layers: int = DPTConfig.num_layers
+    num_heads: int = DPTConfig.num_heads
+    max_length: int = DPTConfig.max_length
 
     @nn.compact
     def __call__(self, tokens: jax.Array) -> jax.Array:
@@ -60,9 +68,13 @@ class DPT(TaskInference):
     needs_expert_actions = True
     acts_itself = True
 
-    def __init__(self, spec: MethodSpec):
-        super().__init__(dataclasses.replace(spec, latent_dim=MODEL_DIM))
-        self.transformer = CausalTransformer()
+    Config = DPTConfig
+    config_key = "dpt"
+
+    def __init__(self, spec: MethodSpec, config: DPTConfig | None = None):
+        config = config or DPTConfig()
+        super().__init__(dataclasses.replace(spec, latent_dim=config.model_dim), config)
+        self.transformer = CausalTransformer(config.model_dim, config.num_layers, config.num_heads, config.max_length)
         # discrete actions (one-hot, KuhnPoker): a categorical head over the action's logits
         head = MLP if spec.discrete_actions else GaussianHead
         self.action_head = head(spec.decoder_dims, spec.action_dim)
@@ -72,7 +84,7 @@ class DPT(TaskInference):
         s = self.spec
         tokens = jnp.zeros((1, 1, 2 * s.obs_dim + s.action_dim + 1))
         return {"transformer": self.transformer.init(k_transformer, tokens),
-                "action_head": self.action_head.init(k_head, jnp.zeros((1, MODEL_DIM + s.obs_dim)))}
+                "action_head": self.action_head.init(k_head, jnp.zeros((1, self.config.model_dim + s.obs_dim)))}
 
     def action_distribution(self, params, obs, z):
         """Mean (squashed into the action bounds) and log-std of the predicted action at obs."""

@@ -8,17 +8,26 @@ contrastive batch size), so every task has one positive pair and 2 x 2 x 15 nega
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import jax
 import jax.numpy as jnp
 
 from bati.methods.base import MethodSpec, TaskInference
 from bati.methods.encoder import ContextEncoder, dummy_context
 
-PUSH_WEIGHT = 1.0  # beta
-PUSH_EPSILON = 0.1  # eps: bounds the push at 1 / eps when two latents coincide
+@dataclass(frozen=True)
+class FOCALConfig:
+    """FOCAL's distance metric loss (also UNICORN's and CSRO's FOCAL term)."""
+
+    push_weight: float = 1.0
+    """beta: weight of the inverse-square push between latents of different tasks."""
+    push_epsilon: float = 0.1
+    """eps: bounds the push at beta / eps when two latents coincide."""
 
 
-def metric_loss(z: jax.Array, labels: jax.Array, beta: float = PUSH_WEIGHT, eps: float = PUSH_EPSILON) -> jax.Array:
+def metric_loss(z: jax.Array, labels: jax.Array, beta: float = FOCALConfig.push_weight,
+                eps: float = FOCALConfig.push_epsilon) -> jax.Array:
     """FOCAL's distance metric loss over all pairs i < j of latents z (N, d) with task labels (N,).
 
     Mean squared distance over same-task pairs plus mean inverse-square push over the other pairs.
@@ -33,11 +42,13 @@ def metric_loss(z: jax.Array, labels: jax.Array, beta: float = PUSH_WEIGHT, eps:
 
 
 class FOCAL(TaskInference):
+    Config = FOCALConfig
+    config_key = "focal"
     needs_context = True
     needs_positive_context = True
 
-    def __init__(self, spec: MethodSpec):
-        super().__init__(spec)
+    def __init__(self, spec: MethodSpec, config=None):
+        super().__init__(spec, config)
         self.encoder = ContextEncoder(spec.encoder_dims, spec.latent_dim)
 
     def init(self, key):
@@ -52,7 +63,8 @@ class FOCAL(TaskInference):
         """The metric loss of the first contexts' latents z and the positive contexts' latents."""
         z_positive = self.encoder.apply(params["encoder"], batch["positive_context"])
         labels = jnp.concatenate([batch["task_ids"], batch["task_ids"]])
-        return metric_loss(jnp.concatenate([z, z_positive]), labels)
+        return metric_loss(jnp.concatenate([z, z_positive]), labels, self.config.push_weight,
+                           self.config.push_epsilon)
 
     def loss(self, params, batch, key):
         loss, z = self.contrastive_loss(params, batch)

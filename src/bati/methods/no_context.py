@@ -17,8 +17,8 @@ from bati.methods.base import MethodSpec, TaskInference
 class NoContext(TaskInference):
     infers_task = False
 
-    def __init__(self, spec: MethodSpec):
-        super().__init__(dataclasses.replace(spec, latent_dim=0))
+    def __init__(self, spec: MethodSpec, config=None):
+        super().__init__(dataclasses.replace(spec, latent_dim=0), config)
 
     def init(self, key):
         return {}

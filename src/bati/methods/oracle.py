@@ -15,8 +15,8 @@ from bati.methods.base import MethodSpec, TaskInference
 
 
 class Oracle(TaskInference):
-    def __init__(self, spec: MethodSpec):
-        super().__init__(dataclasses.replace(spec, latent_dim=spec.task_dim))
+    def __init__(self, spec: MethodSpec, config=None):
+        super().__init__(dataclasses.replace(spec, latent_dim=spec.task_dim), config)
 
     def init(self, key):
         return {}

@@ -17,8 +17,8 @@ from bati.methods.encoder import ContextEncoder, dummy_context
 class Recon(TaskInference):
     needs_context = True
 
-    def __init__(self, spec: MethodSpec):
-        super().__init__(spec)
+    def __init__(self, spec: MethodSpec, config=None):
+        super().__init__(spec, config)
         self.encoder = ContextEncoder(spec.encoder_dims, spec.latent_dim)
         self.model = DynamicsModel(spec.decoder_dims, 1 + spec.obs_dim)
 

@@ -7,21 +7,35 @@ same dynamics model p(r, s' | s, a, z) as BATI's and Recon's.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
+
 import jax
 
+from bati.envs.base import FamilyRecord, record_default
 from bati.methods.base import MethodSpec
 from bati.methods.dynamics import DynamicsModel, context_nll, init_dynamics
-from bati.methods.focal import FOCAL
+from bati.methods.focal import FOCAL, FOCALConfig
 
-UNICORN_WEIGHTS = {"HopperParam": 1.5, "WalkerParam": 1.5}
-DEFAULT_UNICORN_WEIGHT = 0.15  # AntDir, HalfCheetahVel, HalfCheetahDir (and PointGoal)
+
+@dataclass(frozen=True)
+class UNICORNConfig(FOCALConfig):
+    focal_weight: float | None = None
+    """w, the FOCAL term's weight (default: the family's, Table 3: FamilyRecord.unicorn_weight)."""
+
+    def for_family(self, record: FamilyRecord | None) -> UNICORNConfig:
+        if self.focal_weight is not None:
+            return self
+        return replace(self, focal_weight=record.unicorn_weight if record else record_default("unicorn_weight"))
 
 
 class UNICORN(FOCAL):
-    def __init__(self, spec: MethodSpec):
-        super().__init__(spec)
+    Config = UNICORNConfig
+    config_key = "unicorn"
+
+    def __init__(self, spec: MethodSpec, config: UNICORNConfig | None = None):
+        super().__init__(spec, config)
         self.model = DynamicsModel(spec.decoder_dims, 1 + spec.obs_dim)
-        self.weight = UNICORN_WEIGHTS.get(spec.family, DEFAULT_UNICORN_WEIGHT)
+        self.weight = self.config.focal_weight
 
     def init(self, key):
         k_enc, k_model = jax.random.split(key)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +44,7 @@ def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
         base = {"method": c.method, "family": c.family, "seed": c.seed, "noise": f"{c.noise:g}",
                 "family_noise": f"{c.family} eps={c.noise:g}", "split": f"{c.n_train_tasks}/{c.n_test_tasks}",
                 "context_length": str(c.eval_context_length), "commit": run.commit, "device": run.device,
-                "task_range": _task_range(c), "probe": "run",
+                "task_range": _task_range(c), "probe": "run", "family_probe": f"{c.family} run",
                 "wall_time_s": run.wall_time_s}
         probes = plan.probes.get(cell.id, ())
         if not probes:
@@ -58,7 +59,8 @@ def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
             records.append({**base, **{k: v for k, v in saved.items() if k.endswith(kept)},
                             "context_length": str(saved["context_length"]),
                             "context_mix": "" if probe.context_mix is None else f"{probe.context_mix:g}",
-                            "probe": probe.name, "wall_time_s": saved.get("wall_time_s")})
+                            "probe": probe.name, "family_probe": f"{c.family} {probe.name}",
+                            "wall_time_s": saved.get("wall_time_s")})
     return records, runs
 
 
@@ -73,14 +75,15 @@ def _task_range(config) -> str:
 def _sort_key(value: str):
     try:
         return (0, float(value.split("/")[0]), value)
-    except ValueError:
-        return (1, 0.0, value)
+    except ValueError:  # text: numbers in it compare as numbers ("self10" before "self200")
+        return (1, 0.0, [(0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", value)])
 
 
 def table_rows(spec: Spec, records: list[dict], metric: str) -> tuple[list[str], list[str], list[dict]]:
     """Rows, columns and one entry per (row, column): mean, std and seeds of `metric`, paper value."""
     rows = sorted({r[spec.rows] for r in records}, key=method_order if spec.rows == "method" else _sort_key)
-    columns = sorted({r[spec.columns] for r in records}, key=_sort_key)
+    # columns whose records all lack the metric (another probe's keys) are left out
+    columns = sorted({r[spec.columns] for r in records if metric in r}, key=_sort_key)
     paper = spec.paper.values if spec.paper and metric == spec.metric else {}
     entries = []
     for row in rows:

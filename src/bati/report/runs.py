@@ -10,8 +10,26 @@ from pathlib import Path
 
 # Config keys that do not make two runs' settings different (they are what a table compares or where
 # files went). Keys starting with "method_" are ignored as well.
-IGNORED_CONFIG_KEYS = frozenset({"method", "seed", "out_dir", "data_root", "method_config"})
+IGNORED_CONFIG_KEYS = frozenset({"method", "seed", "out_dir", "data_root", "log_to", "method_config"})
 REQUIRED_KEYS = ("family", "method", "seed", "p_test_return", "p_train_return")
+
+
+def _comparable(config: dict) -> dict:
+    """A run's recorded config in today's names (older records upgraded), without its method's
+    hyperparameters where they are the method's defaults on its family: runs of different methods at
+    the same setting share a table, and a non-default one (e.g. csro.club_weight) is a setting."""
+    from bati.config import default_method_record, method_sections, upgrade_record
+
+    config = upgrade_record(config)
+    for name in method_sections():
+        if name in config:
+            try:
+                default = default_method_record(config.get("family"), config.get("method"))
+            except (ImportError, ValueError):  # a family not available here (its extra is missing)
+                continue
+            if config[name] == default:
+                config.pop(name)
+    return config
 
 
 class ReportWarning(UserWarning):
@@ -87,7 +105,7 @@ class RunResult:
         """
         if self.config is None:
             return {"family": self.family, "scale": self.scale, "steps": self.steps}
-        flat = _flatten({k: v for k, v in self.config.items()
+        flat = _flatten({k: v for k, v in _comparable(self.config).items()
                          if k not in IGNORED_CONFIG_KEYS and not k.startswith("method_")})
         flat.setdefault("family", self.family)
         return flat

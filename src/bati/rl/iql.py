@@ -13,21 +13,30 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import optax
+import tyro
 
 from bati.nets import MLP, DoubleCritic, GaussianHead, gaussian_log_prob
 
 
+TABLE3_HIDDEN_DIMS = (256, 256)
+
+
 @dataclass(frozen=True)
 class IQLConfig:
-    hidden_dims: tuple[int, ...] = (256, 256)
+    hidden_dims: tuple[int, ...] | None = None
+    """Hidden sizes of the actor, critics and value net (default: Table 3's (256, 256); `bati train`
+    fills in its scale's default: quick (128, 128))."""
     learning_rate: float = 3e-4
     discount: float = 0.99
     expectile: float = 0.8
-    beta: float = 0.05
-    """Temperature: actor weights are exp(A / beta) (Table 3's 0.05 is a divisor)."""
+    temperature: float = 0.05
+    """Actor weights are exp(A / temperature) (Table 3's 0.05 is this divisor; the IQL paper writes
+    exp(beta A) with an inverse temperature beta = 1 / temperature)."""
     max_exp_advantage: float = 100.0
     tau: float = 0.005
-    discrete: bool = False
+    """Polyak rate of the target critic."""
+    discrete: tyro.conf.Suppress[bool] = False
+    """Categorical actor over one-hot actions (set from the family: KuhnPoker; not a CLI option)."""
 
 
 class IQLState(NamedTuple):
@@ -46,9 +55,9 @@ def expectile_loss(diff: jax.Array, expectile: float) -> jax.Array:
     return weight * diff**2
 
 
-def advantage_weights(advantage: jax.Array, beta: float, max_weight: float) -> jax.Array:
-    """AWR weights exp(A / beta), clipped at `max_weight`."""
-    return jnp.minimum(jnp.exp(advantage / beta), max_weight)
+def advantage_weights(advantage: jax.Array, temperature: float, max_weight: float) -> jax.Array:
+    """AWR weights exp(A / temperature), clipped at `max_weight`."""
+    return jnp.minimum(jnp.exp(advantage / temperature), max_weight)
 
 
 class IQL:
@@ -57,10 +66,10 @@ class IQL:
     def __init__(self, obs_dim: int, latent_dim: int, action_dim: int, config: IQLConfig = IQLConfig()):
         self.config = config
         self.obs_dim, self.latent_dim, self.action_dim = obs_dim, latent_dim, action_dim
-        head = MLP(config.hidden_dims, action_dim) if config.discrete else GaussianHead(config.hidden_dims, action_dim)
-        self.actor_net = head
-        self.critic_net = DoubleCritic(config.hidden_dims)
-        self.value_net = MLP(config.hidden_dims, 1)
+        dims = tuple(config.hidden_dims or TABLE3_HIDDEN_DIMS)
+        self.actor_net = MLP(dims, action_dim) if config.discrete else GaussianHead(dims, action_dim)
+        self.critic_net = DoubleCritic(dims)
+        self.value_net = MLP(dims, 1)
         self.optimizer = optax.adam(config.learning_rate)
 
     def init(self, key: jax.Array) -> IQLState:
@@ -102,14 +111,17 @@ class IQL:
         obs_z = jnp.concatenate([batch["observations"], z], -1)
         q = self.critic_net.apply(state.target_critic, jnp.concatenate([obs_z, batch["actions"]], -1)).min(0)
         v = self.value_net.apply(state.value, obs_z)[..., 0]
-        weights = advantage_weights(q - v, self.config.beta, self.config.max_exp_advantage)
+        weights = advantage_weights(q - v, self.config.temperature, self.config.max_exp_advantage)
         # Weighted log-likelihood of the DATASET actions (not of freshly sampled ones).
         log_prob = self.log_prob(actor, obs_z, batch["actions"])
         return -(jax.lax.stop_gradient(weights) * log_prob).mean(), weights.mean()
 
     def critic_loss(self, critic, state: IQLState, batch, z):
         next_v = self.value_net.apply(state.value, jnp.concatenate([batch["next_observations"], z], -1))[..., 0]
-        # Episodes end only by the time limit, so every transition bootstraps.
+        # Our families' episodes end only by the time limit, so every transition bootstraps; a user's own
+        # data may mark terminal transitions (no value after them).
+        if "terminals" in batch:
+            next_v = (1.0 - batch["terminals"]) * next_v
         target = batch["rewards"] + self.config.discount * next_v
         q = self.critic_net.apply(critic, jnp.concatenate([batch["observations"], z, batch["actions"]], -1))
         return ((q - jax.lax.stop_gradient(target)) ** 2).mean(), q.mean()

@@ -1,0 +1,365 @@
+"""`TrainConfig`: everything a training run is, as one dataclass (the CLI is this dataclass, via tyro).
+
+A run directory's config.json is `config.record()`: the resolved config with only the run's own
+method's hyperparameters. A run's identity is that record, where it lives aside (NOT_IDENTITY).
+Runs recorded by older versions stay valid: `upgrade_record` maps their renamed fields, settings
+added later count as the value older runs used, and `digest_view` keeps sweep digests (the names of
+run directories) unchanged for configs that older versions could express.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Literal
+
+from bati.data.own import OWN_FAMILY
+from bati.envs import TaskSplit
+from bati.methods.bati import BATIConfig
+from bati.methods.csro import CSROConfig
+from bati.methods.dpt import DPTConfig
+from bati.methods.focal import FOCALConfig
+from bati.methods.unicorn import UNICORNConfig
+from bati.rl.iql import TABLE3_HIDDEN_DIMS, IQLConfig
+from bati.sinks import check_sinks
+
+QUICK_RL_HIDDEN_DIMS = (128, 128)
+"""IQL's hidden sizes at the quick scale (the paper scale uses Table 3's (256, 256))."""
+
+
+@dataclass
+class TrainConfig:
+    family: str | None = None
+    """The task family (default: PointGoal; with --datasets: `own`, your data)."""
+    method: str = "bati"
+    """bati, bati-r, bati-auto, recon, unicorn, csro, focal, dpt, oracle or no-context."""
+    seed: int = 0
+    scale: Literal["quick", "paper"] = "quick"
+    steps: int | None = None
+    """Gradient steps (default: paper 100k, quick 3k)."""
+    task_batch: int | None = None
+    """Tasks in a batch (default: Table 3's 16, or all training tasks when there are fewer)."""
+    batch_size: int | None = None
+    """Transitions per task in a batch (default: paper 256, quick 64)."""
+    context_length: int | None = None
+    """Transitions in a training context (encoder methods) and, by default, in an evaluation context
+    (default: the family's, one episode = 200; KuhnPoker 20 = 10 hands)."""
+    eval_context_length: int | None = None
+    """Transitions in an evaluation context (default: context_length; Table 1 evaluates other lengths)."""
+    eval_every: int | None = None
+    """Steps between evaluations (default: a tenth of the steps)."""
+    checkpoint_every: int | None = None
+    """Steps between checkpoints (default: eval_every)."""
+    log_every: int = 100
+    noise: float | None = None
+    """The family's eps for data and evaluation (default: the family's)."""
+    data_seed: int = 0
+    """Seed of the collection to train on (its `bati data collect --seed`)."""
+    data_root: Path = Path("data")
+    out_dir: Path | None = None
+    """Run directory (default: runs/<family>/<scale>/<method>-seed<seed>)."""
+    learning_rate: float = 3e-4
+    """Adam step size of the task-inference method (IQL's is iql.learning_rate)."""
+    iql: IQLConfig = field(default_factory=IQLConfig)
+    """The offline RL core (default hidden sizes: quick (128, 128), paper Table 3's (256, 256))."""
+
+    episodes_per_task: int | None = None
+    """Episodes per training task in the data (default: the scale's; a collection of other sizes needs
+    its own --data-root)."""
+    context_episodes: int | None = None
+    """Episodes per test task in the context data (default: the scale's)."""
+    n_train_tasks: int = 20
+    """Training tasks (App. D.3 splits AntDir's 40 tasks 10/30 and 30/10)."""
+    n_test_tasks: int = 20
+    train_task_range: tuple[float, float] | None = None
+    """Draw the training tasks' parameter uniformly from [LOW, HIGH) (Sec. 5.7: AntDir 0 3.14159)."""
+    test_task_range: tuple[float, float] | None = None
+    """Draw the test tasks' parameter uniformly from [LOW, HIGH) (Sec. 5.7: AntDir 3.14159 6.28319)."""
+
+    datasets: tuple[str, ...] = ()
+    """Train on your own Minari datasets (ids or directories) instead of a family's collection: one per task,
+    or grouped by --task-key (docs/own-data.md). No env: offline diagnostics instead of returns."""
+    task_key: str | None = None
+    """With --datasets: the key of each episode's Minari options that names its task (default: one task per
+    dataset)."""
+    held_out: float = 0.2
+    """With --datasets: share of each task's segments held out for the diagnostics."""
+    log_to: tuple[str, ...] = ()
+    """Also log to: tensorboard (`pip install 'bati[tensorboard]'`), wandb (`pip install 'bati[wandb]'`);
+    the JSONL files are always written. Not part of the run's identity."""
+
+    # Each method's hyperparameters (only the run's own method's are recorded in config.json).
+    bati: BATIConfig = field(default_factory=BATIConfig)
+    """bati, bati-r and bati-auto."""
+    focal: FOCALConfig = field(default_factory=FOCALConfig)
+    unicorn: UNICORNConfig = field(default_factory=UNICORNConfig)
+    csro: CSROConfig = field(default_factory=CSROConfig)
+    dpt: DPTConfig = field(default_factory=DPTConfig)
+
+    # --- reading and writing ------------------------------------------------------------------
+    @classmethod
+    def from_record(cls, record: dict) -> TrainConfig:
+        """The config a run directory's config.json records (lists back to tuples; `runtime` and keys
+        this version does not know are ignored; older records are upgraded first)."""
+        record = upgrade_record(record)
+        kinds = {f.name: f for f in fields(cls)}
+        values = {k: _tuples(v) for k, v in record.items() if k in kinds}
+        for name, section in method_sections().items():
+            if isinstance(values.get(name), dict):
+                values[name] = _dataclass_from(section, values[name])
+        if isinstance(values.get("iql"), dict):
+            values["iql"] = _dataclass_from(IQLConfig, values["iql"])
+        for name in ("data_root", "out_dir"):
+            if values.get(name) is not None:
+                values[name] = Path(values[name])
+        return cls(**values)
+
+    @classmethod
+    def from_file(cls, path: Path) -> TrainConfig:
+        """The config recorded in a run directory (or its config.json): `bati train --config`."""
+        from bati.train import read_run_config
+
+        path = Path(path)
+        return cls.from_record(read_run_config(path.parent if path.name == "config.json" else path))
+
+    def record(self) -> dict:
+        """The config as JSON data (config.json): only the run's own method's hyperparameters."""
+        record = json.loads(json.dumps(asdict(self), default=str))
+        own = method_config_key(self.method)
+        for name in method_sections():
+            if name != own:
+                record.pop(name)
+        return record
+
+    def task_split(self) -> TaskSplit:
+        """The training / test task split of the run's data."""
+        return TaskSplit(self.n_train_tasks, self.n_test_tasks,
+                         None if self.train_task_range is None else tuple(self.train_task_range),
+                         None if self.test_task_range is None else tuple(self.test_task_range))
+
+    def method_config(self) -> Any:
+        """The run's method's hyperparameters (None for a method without any)."""
+        key = method_config_key(self.method)
+        return None if key is None else getattr(self, key)
+
+    # --- defaults and checks ------------------------------------------------------------------
+    def resolved(self) -> TrainConfig:
+        """Every default filled in (an explicit default and None give the same config) and every value
+        checked, before any work: ValueError / TaskError with one line naming the setting."""
+        from bati.methods import METHODS
+
+        own = bool(self.datasets)
+        if own and self.family not in (None, OWN_FAMILY):
+            raise ValueError(f"--datasets trains on your own data (family {OWN_FAMILY!r}), not on {self.family}: "
+                             "leave out --family")
+        if not own and self.family == OWN_FAMILY:
+            raise ValueError(f"family {OWN_FAMILY!r} is your own data: give it with --datasets")
+        name = OWN_FAMILY if own else (self.family or "PointGoal")
+        family = family_of(name, self.context_length)  # TaskError for an unknown family
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; choose one of: {', '.join(METHODS)}")
+        if self.scale not in ("quick", "paper"):
+            raise ValueError(f"unknown scale {self.scale!r}; choose quick or paper")
+        for setting in ("steps", "task_batch", "batch_size", "context_length", "eval_context_length", "eval_every",
+                        "checkpoint_every", "log_every", "episodes_per_task", "context_episodes"):
+            value = getattr(self, setting)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+                raise ValueError(f"{setting} must be an integer >= 1, got {value!r}")
+        for setting in ("seed", "data_seed"):
+            if not isinstance(getattr(self, setting), int) or getattr(self, setting) < 0:
+                raise ValueError(f"{setting} must be an integer >= 0, got {getattr(self, setting)!r}")
+        for setting, value in (("learning_rate", self.learning_rate), ("iql.learning_rate", self.iql.learning_rate),
+                               ("iql.temperature", self.iql.temperature)):
+            if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
+                raise ValueError(f"{setting} must be a finite number > 0, got {value!r}")
+        check_sinks(self.log_to)  # an unknown sink, or its package missing: before any work
+        section = self.method_config()
+        if hasattr(section, "check"):
+            section.check()
+        quick = self.scale == "quick"
+        pick = lambda value, default: default if value is None else value  # noqa: E731
+        steps = pick(self.steps, 3_000 if quick else 100_000)
+        tenth = max(self.log_every, (steps // 10) // self.log_every * self.log_every)
+        eval_every = pick(self.eval_every, tenth)
+        out = pick(self.out_dir, Path("runs") / name / self.scale / f"{self.method}-seed{self.seed}")
+        split = None if own else self.task_split().checked(family)  # TaskError for a bad count or range
+        if own:
+            if METHODS[self.method].needs_expert_actions:
+                raise ValueError(f"{self.method} imitates an expert of the tasks, which your own data does not have")
+            if not 0.0 < self.held_out < 1.0:
+                raise ValueError(f"held_out must be in (0, 1), got {self.held_out!r}")
+        context_length = pick(self.context_length, family.default_context_length)
+        rl_dims = pick(self.iql.hidden_dims, QUICK_RL_HIDDEN_DIMS if quick else TABLE3_HIDDEN_DIMS)
+        resolved = replace(
+            self,
+            family=name,
+            datasets=tuple(self.datasets),
+            log_to=tuple(self.log_to),
+            noise=family.validate_noise(self.noise),
+            train_task_range=None if own else split.train_range,
+            test_task_range=None if own else split.test_range,
+            steps=steps,
+            batch_size=pick(self.batch_size, 64 if quick else 256),
+            task_batch=pick(self.task_batch, 16 if own else min(16, split.n_train)),
+            eval_every=eval_every,
+            context_length=context_length,
+            eval_context_length=pick(self.eval_context_length, context_length),
+            checkpoint_every=pick(self.checkpoint_every, eval_every),
+            out_dir=Path(out),
+            data_root=Path(self.data_root),
+            iql=replace(self.iql, hidden_dims=tuple(rl_dims), discrete=family.discrete_actions),
+            **{name: _for_family(getattr(self, name), family.record) for name in method_sections()},
+        )
+        if own and resolved.eval_context_length > context_length:
+            raise ValueError(f"eval_context_length ({resolved.eval_context_length}) must be at most context_length "
+                             f"({context_length}): your episodes are cut into segments of context_length")
+        if not own and resolved.task_batch > split.n_train:
+            raise ValueError(f"task_batch ({resolved.task_batch}) must be at most n_train_tasks ({split.n_train}): "
+                             "a batch draws distinct training tasks")
+        if resolved.eval_every % self.log_every or resolved.checkpoint_every % self.log_every:
+            raise ValueError(f"eval_every ({resolved.eval_every}) and checkpoint_every ({resolved.checkpoint_every}) "
+                             f"must be multiples of log_every ({self.log_every})")
+        return resolved
+
+
+def nested_sections() -> dict[str, type]:
+    """TrainConfig's fields that are dataclasses themselves: IQL's and each method's."""
+    return {"iql": IQLConfig, **method_sections()}
+
+
+NOT_SETTABLE = ("iql.discrete",)
+"""Derived from the family (KuhnPoker's actions are discrete), never set by hand."""
+
+
+def settable_names() -> set[str]:
+    """Names `apply_settings` accepts: TrainConfig's plain fields and `section.field` of nested ones."""
+    sections = nested_sections()
+    names = {f.name for f in fields(TrainConfig) if f.name not in sections}
+    names |= {f"{name}.{f.name}" for name, cls in sections.items() for f in fields(cls)}
+    return names - set(NOT_SETTABLE)
+
+
+def apply_settings(config: TrainConfig, settings: dict[str, Any]) -> TrainConfig:
+    """`config` with `settings` ({field or "section.field": value}) applied; ValueError for an unknown name."""
+    names = settable_names()
+    plain, nested = {}, {}
+    for key, value in settings.items():
+        if key not in names:
+            raise ValueError(f"unknown setting {key!r}")
+        section, _, name = key.partition(".")
+        if name:
+            nested.setdefault(section, {})[name] = value
+        else:
+            plain[key] = value
+    sections = {section: replace(getattr(config, section), **values) for section, values in nested.items()}
+    return replace(config, **plain, **sections)
+
+
+def family_of(name: str, context_length: int | None = None):
+    """The family called `name`; for `own` (a user's datasets) a family-like holder of its record, whose
+    episodes are segments of `context_length` transitions (default 200)."""
+    from bati.envs import get_family
+
+    if name != OWN_FAMILY:
+        return get_family(name)
+    from bati.data.own import OwnFamily
+
+    return OwnFamily(context_length or 200)
+
+
+def method_sections() -> dict[str, type]:
+    """TrainConfig's per-method fields: name -> the Config dataclass it holds."""
+    return {"bati": BATIConfig, "focal": FOCALConfig, "unicorn": UNICORNConfig, "csro": CSROConfig,
+            "dpt": DPTConfig}
+
+
+def method_config_key(method: str) -> str | None:
+    """The TrainConfig field holding `method`'s hyperparameters (None: it has none, or is unknown)."""
+    from bati.methods import METHODS
+
+    cls = METHODS.get(method)
+    return None if cls is None else cls.config_key
+
+
+def _for_family(section, record):
+    return section.for_family(record) if hasattr(section, "for_family") else section
+
+
+def _tuples(value):
+    if isinstance(value, list):
+        return tuple(_tuples(v) for v in value)
+    return value
+
+
+def _dataclass_from(cls, values: dict):
+    """An instance of dataclass `cls` from a record's dict (unknown keys ignored, lists as tuples)."""
+    names = {f.name for f in fields(cls)}
+    return cls(**{k: _tuples(v) for k, v in values.items() if k in names})
+
+
+# --- identity across versions ----------------------------------------------------------------
+# Where a run lives is not what it is: these fields may differ when a run directory is moved or resumed.
+NOT_IDENTITY = ("out_dir", "data_root", "log_to")
+# Fields added to TrainConfig after runs were recorded: a saved config without one had this value.
+LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": None, "test_task_range": None,
+                "datasets": [], "task_key": None, "held_out": 0.2}
+
+
+def upgrade_record(record: dict) -> dict:
+    """A config.json written by an older version, in today's field names. Before the per-method
+    sections existed: IQL's temperature was called `beta`, and its hidden sizes were also recorded
+    as `rl_hidden_dims` (the same value, copied into iql.hidden_dims)."""
+    record = dict(record)
+    iql = record.get("iql")
+    if isinstance(iql, dict) and "beta" in iql:
+        iql = {("temperature" if k == "beta" else k): v for k, v in iql.items()}
+        record["iql"] = iql
+    record.pop("rl_hidden_dims", None)
+    return record
+
+
+def later_value(key: str, current: dict) -> Any:
+    """What a config recorded before setting `key` existed had for it: LATER_FIELDS, or for a method's
+    hyperparameters the defaults for the current record's family."""
+    if key in LATER_FIELDS:
+        return LATER_FIELDS[key]
+    if key in method_sections():
+        return default_method_record(current.get("family"), current.get("method"))
+    return None
+
+
+def default_method_record(family: str | None, method: str | None) -> dict | None:
+    """The default hyperparameters of `method` on `family`, as config.json records them."""
+    key = method_config_key(method or "")
+    if key is None:
+        return None
+    section = _for_family(method_sections()[key](), family_of(family).record if family else None)
+    return json.loads(json.dumps(asdict(section), default=str))
+
+
+def differing_settings(saved: dict, current: dict, keys) -> list[str]:
+    """The keys whose saved and current values differ (the saved record upgraded first; a key added
+    later and absent from the saved config counts as its old value, `later_value`)."""
+    saved = upgrade_record(saved)
+
+    def old(k):
+        return saved[k] if k in saved else later_value(k, current)
+
+    return [k for k in keys if old(k) != current.get(k)]
+
+
+def digest_view(record: dict) -> dict:
+    """The record as the digest of a sweep cell sees it: settings added later at their old values are
+    left out and renamed ones take their old names, so a config that an older version could express
+    keeps its digest (and its run directory)."""
+    view = {k: v for k, v in record.items() if not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
+    for name in method_sections():
+        if name in view and view[name] == default_method_record(record.get("family"), record.get("method")):
+            view.pop(name)
+    iql = view.get("iql")
+    if isinstance(iql, dict):
+        view["iql"] = {("beta" if k == "temperature" else k): v for k, v in iql.items()}
+        view["rl_hidden_dims"] = iql.get("hidden_dims")
+    return view

@@ -1,0 +1,201 @@
+"""A user's own multi-task offline data: Minari datasets read into bati's training layout.
+
+`bati train --datasets ID [ID ...]` trains on them instead of a family's collection (docs/own-data.md):
+
+- tasks: each dataset is one task, or (`task_key`) the episodes of all datasets are grouped by the value
+  of that key in each episode's Minari `options` (what `env.reset(options=...)` was given);
+- episodes of any length, terminations honoured: each episode is cut into segments of `segment_length`
+  transitions ending where the episode ends (a context never spans two episodes); the shorter
+  remainder at an episode's start and episodes shorter than a segment are dropped, and the counts are
+  recorded; a transition where the episode terminated keeps its terminal flag, so IQL does not
+  bootstrap past it;
+- a share `held_out` of each task's segments (at least one) is kept out of training for the offline
+  diagnostics (`bati.evaluate.OfflineEvaluator`: task-inference accuracy on held-out contexts and the
+  representation loss on held-out data). With no environment, no returns are measured.
+
+Tasks hold different numbers of segments: each task's arrays are padded to the largest, and the
+samplers draw only from each task's valid part (`TaskData.counts`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from bati.data.batch import FamilyData, TaskData
+from bati.data.store import DatasetError, DatasetNotFoundError
+from bati.envs import FamilyRecord, TaskFamily
+
+OWN_FAMILY = "own"
+"""TrainConfig.family of a run on a user's own datasets (no env: offline diagnostics only)."""
+
+
+def own_record(segment_length: int) -> FamilyRecord:
+    """The record of a user's data: the reward families' Table 3 sizes, the given segment length."""
+    return FamilyRecord(name=OWN_FAMILY, task_space="a task of your datasets (one-hot by task index)", task_dim=1,
+                        default_noise=0.0, max_noise=0.0, noise_meaning="none (your data is as it was recorded)",
+                        episode_length=segment_length, context_length=segment_length)
+
+
+class OwnFamily(TaskFamily):
+    """What bati knows of a user's data as a family: its record (segments of `segment_length`) and task
+    labels, told apart by identity (distance 0 or 1). It has no env."""
+
+    record = own_record(200)
+
+    def __init__(self, segment_length: int = 200):
+        self.record = own_record(segment_length)
+
+    def _sample(self, n, rng):
+        raise TypeError("your own data's tasks are its datasets' (or --task-key's): none can be sampled")
+
+    def _check(self, task):
+        return task
+
+    def distance(self, a, b):
+        return float(a != b)
+
+    def make_env(self, task, noise=None, **kwargs):
+        raise TypeError("your own data comes without an env: runs on it report offline diagnostics only")
+
+
+@dataclass
+class OwnData(FamilyData):
+    """FamilyData of a user's datasets: `train` and `held_out` segments of the same tasks, no test tasks."""
+
+    held_out: TaskData | None = None
+
+
+def _open(dataset: str):
+    """A Minari dataset by id (under MINARI_DATASETS_PATH) or by directory (the one holding data/)."""
+    import minari
+
+    path = Path(dataset)
+    try:
+        if path.is_dir():
+            return minari.MinariDataset(path / "data" if (path / "data").is_dir() else path)
+        return minari.load_dataset(dataset)
+    except FileNotFoundError as err:
+        raise DatasetNotFoundError(f"no Minari dataset {dataset!r} (neither a dataset directory nor an id under "
+                                   "MINARI_DATASETS_PATH; `minari list local` shows the ids)") from err
+    except Exception as err:  # h5py / json / Minari errors on a damaged or foreign file
+        raise DatasetError(f"cannot read the Minari dataset {dataset!r} ({type(err).__name__}: {err})") from err
+
+
+def _task_label(options: dict, task_key: str, dataset: str, episode: int):
+    if task_key not in options:
+        raise DatasetError(f"{dataset}: episode {episode} has no {task_key!r} in its options "
+                           f"(it has: {', '.join(sorted(options)) or 'none'}); give another --task-key")
+    return json.dumps(options[task_key], sort_keys=True, default=str)
+
+
+def read_episodes(datasets: tuple[str, ...], task_key: str | None) -> tuple[list[str], list[list[dict]]]:
+    """(task labels, per task its episodes as dicts of arrays), tasks in a stable order."""
+    if not datasets:
+        raise ValueError("--datasets needs at least one Minari dataset")
+    grouped: dict[str, list[dict]] = {}
+    shapes = None
+    for dataset in dict.fromkeys(datasets):
+        data = _open(dataset)
+        storage = data.storage
+        spaces = (tuple(storage.observation_space.shape or ()), tuple(storage.action_space.shape or ()))
+        if len(spaces[0]) != 1 or len(spaces[1]) != 1:
+            raise DatasetError(f"{dataset}: observations {spaces[0]} and actions {spaces[1]} must be flat Box "
+                               "vectors (bati's networks read vectors)")
+        if shapes not in (None, spaces):
+            raise DatasetError(f"{dataset}: observation/action shapes {spaces} differ from the other datasets' {shapes}")
+        shapes = spaces
+        indices = range(storage.total_episodes)
+        metadata = list(storage.get_episode_metadata(indices))
+        for e, (episode, meta) in enumerate(zip(storage.get_episodes(indices), metadata)):
+            label = dataset if task_key is None else _task_label(meta.get("options") or {}, task_key, dataset, e)
+            grouped.setdefault(label, []).append({
+                "observations": np.asarray(episode["observations"], np.float32),
+                "actions": np.asarray(episode["actions"], np.float32),
+                "rewards": np.asarray(episode["rewards"], np.float32).reshape(-1),
+                "terminations": np.asarray(episode["terminations"], bool).reshape(-1),
+            })
+    labels = sorted(grouped) if task_key is not None else list(grouped)
+    if len(labels) < 2:
+        raise DatasetError(f"{len(labels)} task in {', '.join(datasets)}: task inference needs at least 2 tasks "
+                           "(one dataset per task, or --task-key naming the episodes' task)")
+    return labels, [grouped[label] for label in labels]
+
+
+def segments(episodes: list[dict], length: int) -> dict[str, np.ndarray]:
+    """Each episode cut into segments of `length` transitions, concatenated. The segments end where the
+    episode ends, so a terminal transition is always kept; the remainder dropped is the episode's start."""
+    parts: dict[str, list] = {k: [] for k in ("observations", "actions", "rewards", "next_observations", "terminals")}
+    for episode in episodes:
+        total = len(episode["rewards"])
+        first = total % length
+        if total < length:
+            continue
+        obs = episode["observations"]
+        parts["observations"].append(obs[first:total])
+        parts["next_observations"].append(obs[first + 1:total + 1])
+        parts["actions"].append(episode["actions"][first:])
+        parts["rewards"].append(episode["rewards"][first:])
+        parts["terminals"].append(episode["terminations"][first:].astype(np.float32))
+    return {k: np.concatenate(v) if v else np.zeros((0,)) for k, v in parts.items()}
+
+
+def load_own_data(datasets: tuple[str, ...], task_key: str | None, segment_length: int, held_out: float,
+                  seed: int = 0) -> OwnData:
+    """The datasets' tasks as training and held-out segments (see the module docstring)."""
+    if not 0.0 < held_out < 1.0:
+        raise ValueError(f"held_out must be in (0, 1), got {held_out!r}")
+    labels, per_task = read_episodes(tuple(datasets), task_key)
+    rng = np.random.default_rng(seed)
+    train_parts, held_parts, report = [], [], {"tasks": [], "transitions_read": 0, "transitions_kept": 0}
+    for label, episodes in zip(labels, per_task):
+        cut = segments(episodes, segment_length)
+        n_seg = len(cut["rewards"]) // segment_length
+        read = sum(len(e["rewards"]) for e in episodes)
+        report["transitions_read"] += read
+        report["transitions_kept"] += n_seg * segment_length
+        if n_seg < 2:
+            raise DatasetError(f"task {label}: {n_seg} segment(s) of {segment_length} transitions in {read} "
+                               "transitions; it needs 2 (one to train, one held out): give a shorter "
+                               "--context-length or more episodes")
+        order = rng.permutation(n_seg)
+        n_held = min(max(1, round(held_out * n_seg)), n_seg - 1)
+        pick = lambda which: {k: v.reshape((n_seg, segment_length) + v.shape[1:])[np.sort(which)].reshape(  # noqa: E731
+            (-1,) + v.shape[1:]) for k, v in cut.items()}
+        train_parts.append(pick(order[n_held:]))
+        held_parts.append(pick(order[:n_held]))
+        report["tasks"].append({"task": label, "episodes": len(episodes), "segments": n_seg, "held_out": n_held})
+    obs_dim, action_dim = train_parts[0]["observations"].shape[-1], train_parts[0]["actions"].shape[-1]
+    n_tasks = len(labels)
+    task_arrays = np.eye(n_tasks, dtype=np.float32)
+    manifest = {"datasets": list(datasets), "task_key": task_key, "segment_length": segment_length,
+                "held_out": held_out, **report, "transitions": report["transitions_kept"],
+                "n_episodes": None, "n_context_episodes": None}
+    return OwnData(
+        family=OWN_FAMILY, scale="own", seed=seed, noise=0.0, train_tasks=labels, test_tasks=[],
+        train_task_arrays=task_arrays, test_task_arrays=np.zeros((0, n_tasks), np.float32),
+        train=_padded(train_parts, segment_length), p_test=None, p_train=None,
+        obs_dim=int(obs_dim), action_dim=int(action_dim), task_dim=n_tasks, path=None, manifest=manifest,
+        held_out=_padded(held_parts, segment_length),
+    )
+
+
+def _padded(parts: list[dict], segment_length: int) -> TaskData:
+    """Per-task arrays padded (with each task's first transitions) to the longest task; counts mark the valid part."""
+    longest = max(len(p["rewards"]) for p in parts)
+
+    def pad(v):
+        reps = -(-longest // len(v))
+        return np.concatenate([v] * reps)[:longest]
+
+    stacked = {k: np.stack([pad(p[k]) for p in parts]) for k in parts[0]}
+    counts = np.array([len(p["rewards"]) for p in parts], np.int32)
+    collector = np.broadcast_to(np.arange(len(parts), dtype=np.int32)[:, None], stacked["rewards"].shape)
+    return TaskData(observations=jnp.asarray(stacked["observations"]), actions=jnp.asarray(stacked["actions"]),
+                    rewards=jnp.asarray(stacked["rewards"]), next_observations=jnp.asarray(stacked["next_observations"]),
+                    collector=jnp.asarray(collector), episode_length=segment_length,
+                    terminals=jnp.asarray(stacked["terminals"]), counts=jnp.asarray(counts))

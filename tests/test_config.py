@@ -1,0 +1,124 @@
+"""TrainConfig: defaults from the family's record, per-method sections, the CLI is the dataclass, and runs
+recorded by older versions keep their identity and digests."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import pytest
+
+from bati.cli import main
+from bati.config import (
+    NOT_IDENTITY,
+    TrainConfig,
+    apply_settings,
+    differing_settings,
+    method_sections,
+    upgrade_record,
+)
+from bati.envs import EPISODE_LENGTH, FAMILY_NAMES, family_available, get_family
+from bati.experiments.sweep import Grid, SweepError, config_digest
+from bati.methods import METHODS
+from bati.methods.csro import CSROConfig
+from bati.rl.iql import IQLConfig
+
+RESULTS = Path(__file__).parent.parent / "results"
+
+
+def test_every_builtin_record_matches_its_registration_and_table3():
+    for name in FAMILY_NAMES:
+        if not family_available(name):
+            continue
+        record = get_family(name).record
+        assert record.name == name and not record.terminates
+        assert gym.spec(f"bati/{name}-v0").max_episode_steps == record.episode_length == EPISODE_LENGTH
+    hopper, ant = get_family("HopperParam").record, get_family("AntDir").record
+    assert (hopper.latent_dim, hopper.net_dims, hopper.paper_episodes) == (40, (128, 128), 1500)
+    assert (ant.latent_dim, ant.net_dims, ant.paper_episodes, ant.club_weight) == (5, (64, 64), 500, 5.0)
+
+
+def test_user_set_iql_settings_survive_resolved():
+    # the old resolved() overwrote iql.hidden_dims and iql.learning_rate with its own values
+    config = TrainConfig(iql=IQLConfig(hidden_dims=(48, 48), learning_rate=1e-3), learning_rate=5e-4).resolved()
+    assert config.iql.hidden_dims == (48, 48) and config.iql.learning_rate == 1e-3 and config.learning_rate == 5e-4
+    assert TrainConfig().resolved().iql.hidden_dims == (128, 128)
+    assert TrainConfig(scale="paper").resolved().iql.hidden_dims == (256, 256)
+
+
+def test_method_sections_take_the_family_default_unless_set():
+    assert TrainConfig(family="HopperParam", method="csro").resolved().csro.club_weight == 2.5
+    assert TrainConfig(family="PointGoal", method="unicorn").resolved().unicorn.focal_weight == 0.15
+    set_by_hand = TrainConfig(family="HopperParam", method="csro", csro=CSROConfig(club_weight=0.5)).resolved()
+    assert set_by_hand.csro.club_weight == 0.5
+
+
+def test_every_method_with_hyperparameters_has_its_section():
+    sections = method_sections()
+    for name, cls in METHODS.items():
+        if cls.Config is not None:
+            assert sections[cls.config_key] is cls.Config, name
+            assert dataclasses.is_dataclass(cls.Config) and cls.Config.__dataclass_params__.frozen
+
+
+def test_config_json_holds_only_the_run_methods_section_and_reads_back():
+    config = TrainConfig(family="HopperParam", method="bati-r").resolved()
+    record = config.record()
+    assert "bati" in record and not {"csro", "unicorn", "focal", "dpt"} & set(record)
+    assert TrainConfig.from_record(record).resolved() == config
+    assert "bati" not in TrainConfig(method="recon").resolved().record()
+
+
+def test_an_old_record_upgrades_to_the_same_run():
+    config = TrainConfig(family="HopperParam", method="csro").resolved()
+    old = config.record()
+    old.pop("csro")  # before method sections existed
+    old["iql"] = {("beta" if k == "temperature" else k): v for k, v in old["iql"].items()}
+    old["rl_hidden_dims"] = old["iql"]["hidden_dims"]
+    assert upgrade_record(old)["iql"]["temperature"] == 0.05 and "rl_hidden_dims" not in upgrade_record(old)
+    current = config.record()
+    assert differing_settings(old, current, [k for k in current if k not in NOT_IDENTITY]) == []
+    changed = dataclasses.replace(config, csro=CSROConfig(club_weight=9.0)).resolved().record()
+    assert differing_settings(old, changed, [k for k in changed if k not in NOT_IDENTITY]) == ["csro"]
+
+
+def test_committed_run_directories_keep_their_digests():
+    """The sweep digest names a run's directory: configs written before the method sections and the IQL
+    renames must map to the same names, or every committed result would be retrained."""
+    checked = 0
+    for path in sorted(RESULTS.rglob("config.json"))[:40]:
+        setting = path.parent.parent.name
+        if not setting.startswith(("quick-", "paper-")):
+            continue
+        config = TrainConfig.from_record(json.loads(path.read_text())).resolved()
+        assert config_digest(config, exclude=NOT_IDENTITY + ("method", "seed"))[:8] == setting.rsplit("-", 1)[1], path
+        checked += 1
+    assert checked >= 10
+
+
+def test_dotted_settings_and_their_errors():
+    config = apply_settings(TrainConfig(method="csro"), {"iql.hidden_dims": (8, 8), "csro.club_weight": 3.0,
+                                                          "steps": 7})
+    assert (config.iql.hidden_dims, config.csro.club_weight, config.steps) == ((8, 8), 3.0, 7)
+    with pytest.raises(ValueError, match="unknown setting 'iql.nope'"):
+        apply_settings(TrainConfig(), {"iql.nope": 1})
+    assert Grid(settings=("csro.club_weight=3", "iql.hidden_dims=[8,8]")).overrides() == \
+        {"csro.club_weight": 3, "iql.hidden_dims": (8, 8)}
+    with pytest.raises(SweepError, match="unknown setting 'iql.discrete'"):  # derived from the family
+        Grid(settings=("iql.discrete=true",)).overrides()
+
+
+def test_bati_train_rejects_settings_beside_config(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps(TrainConfig(steps=5).resolved().record()))
+    assert main(["train", "--config", str(run), "--steps", "9"]) == 2
+    err = capsys.readouterr().err
+    assert "leave out --steps" in err and len(err.strip().splitlines()) == 1
+    assert main(["train", "--family", "Nope"]) == 2  # checked before any work
+    assert "unknown task family 'Nope'" in capsys.readouterr().err
+    assert main(["train", "--bati.latent-samples", "0", "--out-dir", str(tmp_path / "new")]) == 2
+    assert "bati.latent_samples must be an integer >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()

@@ -1,0 +1,95 @@
+"""A user's own Minari datasets (bati.data.own, `bati train --datasets`), built here as docs/own-data.md does."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from bati.cli import main
+from bati.data.batch import sample_batch, sample_contexts
+from bati.data.own import load_own_data
+from bati.data.store import DatasetError
+from bati.rl.iql import IQL, IQLConfig
+
+# the example of docs/own-data.md, run as written (examples/own_data_goalline.py)
+_spec = importlib.util.spec_from_file_location("own_data_goalline",
+                                               Path(__file__).parent.parent / "examples" / "own_data_goalline.py")
+example = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(example)
+GOALS = example.GOALS
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning:minari.utils")  # Minari nags about authorship
+
+
+@pytest.fixture
+def dataset(tmp_path):
+    return str(example.build(tmp_path / "minari", episodes=6))
+
+
+def test_episodes_are_grouped_by_task_key_and_cut_into_segments(dataset):
+    data = load_own_data((dataset,), "goal", segment_length=10, held_out=0.25)
+    assert data.train_tasks == sorted(json.dumps(g) for g in GOALS) and data.task_dim == 4
+    assert data.manifest["transitions_kept"] <= data.manifest["transitions_read"]
+    counts, held = np.asarray(data.train.counts), np.asarray(data.held_out.counts)
+    assert np.all(counts % 10 == 0) and np.all(counts >= 10) and np.all(held >= 10)
+    for task in data.manifest["tasks"]:
+        assert task["episodes"] == 6 and task["held_out"] >= 1
+    # the episodes that reached the goal terminated: their last kept transition may carry the flag
+    assert 0 < float(jnp.sum(data.train.terminals)) <= 4 * 6
+
+
+def test_samplers_draw_only_valid_transitions_and_windows_inside_segments(dataset):
+    data = load_own_data((dataset,), "goal", segment_length=10, held_out=0.25)
+    batch = sample_batch(data.train, jax.random.PRNGKey(0), task_batch=4, batch_size=512)
+    assert "terminals" in batch
+    contexts = sample_contexts(data.train, jax.random.PRNGKey(1), jnp.arange(4).repeat(50), 10)
+    # consecutive observations of a window follow each other (next_obs[t] == obs[t + 1]): never two segments
+    np.testing.assert_array_equal(contexts["next_observations"][:, :-1], contexts["observations"][:, 1:])
+    # no transition beyond a task's count: every sampled observation is one of the task's own valid rows
+    for task in range(4):
+        valid = np.asarray(data.train.observations[task, : int(data.train.counts[task])])
+        rows = np.asarray(batch["observations"][list(np.asarray(batch["task_ids"])).index(task)])
+        assert all((np.abs(valid - row).sum(-1) == 0).any() for row in rows)
+
+
+def test_bad_own_data_gets_one_clear_error(dataset, tmp_path):
+    with pytest.raises(DatasetError, match="1 task in"):  # one dataset, no task key: one task
+        load_own_data((dataset,), None, segment_length=10, held_out=0.25)
+    with pytest.raises(DatasetError, match="has no 'nope' in its options"):
+        load_own_data((dataset,), "nope", segment_length=10, held_out=0.25)
+    with pytest.raises(DatasetError, match="segment"):  # episodes shorter than a segment
+        load_own_data((dataset,), "goal", segment_length=1000, held_out=0.25)
+    assert main(["train", "--datasets", str(tmp_path / "missing"), "--task-key", "goal"]) == 2
+
+
+def test_iql_does_not_bootstrap_past_a_terminal():
+    iql = IQL(1, 2, 1, IQLConfig(hidden_dims=(8,)))
+    state = iql.init(jax.random.PRNGKey(0))
+    batch = {"observations": jnp.zeros((3, 1)), "actions": jnp.zeros((3, 1)), "rewards": jnp.ones(3),
+             "next_observations": jnp.ones((3, 1))}
+    z = jnp.zeros((3, 2))
+    ended = iql.critic_loss(state.critic, state, {**batch, "terminals": jnp.ones(3)}, z)[0]
+    q = iql.critic_net.apply(state.critic, jnp.concatenate([batch["observations"], z, batch["actions"]], -1))
+    np.testing.assert_allclose(ended, ((q - 1.0) ** 2).mean(), rtol=1e-6)  # target = reward alone
+    going = iql.critic_loss(state.critic, state, {**batch, "terminals": jnp.zeros(3)}, z)[0]
+    np.testing.assert_allclose(going, iql.critic_loss(state.critic, state, batch, z)[0], rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_bati_train_on_own_datasets_reports_offline_diagnostics(dataset, tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(["train", "--datasets", dataset, "--task-key", "goal", "--context-length", "10", "--task-batch", "4",
+                 "--batch-size", "16", "--steps", "20", "--eval-every", "10", "--log-every", "10",
+                 "--iql.hidden-dims", "16", "16", "--out-dir", str(out)])
+    assert code == 0, capsys.readouterr().err
+    assert "held-out task-inference accuracy" in capsys.readouterr().out
+    evals = [json.loads(line) for line in (out / "eval.jsonl").read_text().splitlines()]
+    assert [e["step"] for e in evals] == [10, 20]
+    assert all(0.0 <= e["held_out_inference_accuracy"] <= 1.0 for e in evals)
+    config = json.loads((out / "config.json").read_text())
+    assert config["family"] == "own" and config["datasets"] == [dataset] and config["task_key"] == "goal"
