@@ -47,7 +47,7 @@ def build(root: Path, episodes: int) -> Path:
     episode's reset options. Returns its directory."""
     from minari import DataCollector
 
-    root = Path(root)
+    root = Path(root).resolve()  # Minari mishandles a relative MINARI_DATASETS_PATH
     path = root / "goalline" / "mixed-v0"
     if path.is_dir():
         return path
