@@ -41,12 +41,12 @@ def test_actor_loss_is_weighted_log_likelihood_of_dataset_actions():
     iql = IQL(3, 2, 2, IQLConfig(hidden_dims=(16,)))
     state = iql.init(jax.random.PRNGKey(0))
     batch, z = _toy_batch()
-    loss, _ = iql.actor_loss(state.actor, state, batch, z)
+    loss, _ = iql.actor_loss(state.actor.params, state, batch, z)
     obs_z = jnp.concatenate([batch["observations"], z], -1)
     sa = jnp.concatenate([obs_z, batch["actions"]], -1)
-    q = iql.critic_net.apply(state.target_critic, sa).min(0)
-    v = iql.value_net.apply(state.value, obs_z)[:, 0]
-    mean, log_std = iql.actor_net.apply(state.actor, obs_z)
+    q = iql.critic_net.apply(state.critic.target_params, sa).min(0)
+    v = iql.value_net.apply(state.value.params, obs_z)[:, 0]
+    mean, log_std = iql.actor_net.apply(state.actor.params, obs_z)
     by_hand = -np.mean(
         np.minimum(np.exp((q - v) / 0.05), 100.0) * gaussian_log_prob(batch["actions"], jnp.tanh(mean), log_std)
     )
@@ -57,10 +57,10 @@ def test_critic_target_uses_value_of_next_state():
     iql = IQL(3, 2, 2, IQLConfig(hidden_dims=(16,), discount=0.9))
     state = iql.init(jax.random.PRNGKey(1))
     batch, z = _toy_batch()
-    loss, _ = iql.critic_loss(state.critic, state, batch, z)
-    next_v = iql.value_net.apply(state.value, jnp.concatenate([batch["next_observations"], z], -1))[:, 0]
+    loss, _ = iql.critic_loss(state.critic.params, state, batch, z)
+    next_v = iql.value_net.apply(state.value.params, jnp.concatenate([batch["next_observations"], z], -1))[:, 0]
     target = batch["rewards"] + 0.9 * next_v
-    q = iql.critic_net.apply(state.critic, jnp.concatenate([batch["observations"], z, batch["actions"]], -1))
+    q = iql.critic_net.apply(state.critic.params, jnp.concatenate([batch["observations"], z, batch["actions"]], -1))
     np.testing.assert_allclose(loss, np.mean((q - target) ** 2), rtol=1e-5)
 
 
@@ -78,7 +78,7 @@ def test_updates_reduce_losses_on_a_fixed_batch(discrete):
         state, metrics = update(state, batch, z)
     assert metrics["critic_loss"] < first["critic_loss"]
     assert metrics["value_loss"] < first["value_loss"]
-    action = iql.act(state.actor, batch["observations"][:4], z[:4])
+    action = iql.act(state.actor.params, batch["observations"][:4], z[:4])
     assert action.shape == (4, action_dim)
     if discrete:
         np.testing.assert_allclose(action.sum(-1), 1.0)
@@ -96,3 +96,20 @@ def test_latent_gradients_do_not_flow_through_iql():
         return metrics["critic_loss"] + metrics["actor_loss"] + metrics["value_loss"]
 
     np.testing.assert_array_equal(jax.grad(total_loss)(z), 0.0)
+
+
+def test_a_checkpoint_saved_before_train_states_loads_into_them():
+    import flax
+
+    from bati.rl.iql import upgrade_checkpoint
+
+    iql = IQL(3, 2, 2, IQLConfig(hidden_dims=(8,)))
+    state, _ = iql.update(iql.init(jax.random.PRNGKey(0)), *_toy_batch())
+    new = flax.serialization.to_state_dict(state)
+    old = {"actor": new["actor"]["params"], "critic": new["critic"]["params"],
+           "target_critic": new["critic"]["target_params"], "value": new["value"]["params"],
+           "actor_opt": new["actor"]["opt_state"], "critic_opt": new["critic"]["opt_state"],
+           "value_opt": new["value"]["opt_state"]}  # the layout of IQLState before flax TrainStates
+    restored = flax.serialization.from_state_dict(iql.init(jax.random.PRNGKey(1)), upgrade_checkpoint(old, 1))
+    jax.tree_util.tree_map(np.testing.assert_array_equal, restored, state)
+    assert upgrade_checkpoint(new, 1) is new  # today's layout passes through

@@ -73,11 +73,11 @@ def test_iql_does_not_bootstrap_past_a_terminal():
     batch = {"observations": jnp.zeros((3, 1)), "actions": jnp.zeros((3, 1)), "rewards": jnp.ones(3),
              "next_observations": jnp.ones((3, 1))}
     z = jnp.zeros((3, 2))
-    ended = iql.critic_loss(state.critic, state, {**batch, "terminals": jnp.ones(3)}, z)[0]
-    q = iql.critic_net.apply(state.critic, jnp.concatenate([batch["observations"], z, batch["actions"]], -1))
+    ended = iql.critic_loss(state.critic.params, state, {**batch, "terminals": jnp.ones(3)}, z)[0]
+    q = iql.critic_net.apply(state.critic.params, jnp.concatenate([batch["observations"], z, batch["actions"]], -1))
     np.testing.assert_allclose(ended, ((q - 1.0) ** 2).mean(), rtol=1e-6)  # target = reward alone
-    going = iql.critic_loss(state.critic, state, {**batch, "terminals": jnp.zeros(3)}, z)[0]
-    np.testing.assert_allclose(going, iql.critic_loss(state.critic, state, batch, z)[0], rtol=1e-6)
+    going = iql.critic_loss(state.critic.params, state, {**batch, "terminals": jnp.zeros(3)}, z)[0]
+    np.testing.assert_allclose(going, iql.critic_loss(state.critic.params, state, batch, z)[0], rtol=1e-6)
 
 
 @pytest.mark.slow

@@ -125,7 +125,7 @@ class Evaluator:
         """
         k, n = len(seeds), len(self.data.test_tasks)
         latents, diagnostics = jax.device_get(self.latents_of_runs(states.method, keys))
-        policy_params = states.method if self.method.acts_itself else states.iql.actor
+        policy_params = states.method if self.method.acts_itself else states.iql.actor.params
         returns = {}
         for source in self.sources:
             z = jnp.asarray(latents[source])  # (k, n, latent_dim)

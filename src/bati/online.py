@@ -215,7 +215,7 @@ class SelfCollector:
         drawn = np.asarray(jax.vmap(lambda key: jax.random.randint(key, (n,), 0, reference.shape[1]))(k_prior))
         prior = np.take_along_axis(reference, drawn[..., None], axis=1)  # (runs, n, latent)
         method_params = self.calibrate(states.method, keys)
-        policy_params = states.method if ev.method.acts_itself else states.iql.actor
+        policy_params = states.method if ev.method.acts_itself else states.iql.actor.params
         test_arrays = jnp.asarray(ev.data.test_task_arrays, jnp.float32)
         obs_dim, action_dim = ev.data.obs_dim, ev.data.action_dim
         record = _Record(ev.family, runs * n, total, obs_dim, action_dim)

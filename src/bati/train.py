@@ -46,7 +46,7 @@ from bati.io import (
     read_jsonl_lines,
 )
 from bati.methods import MethodSpec, make_method
-from bati.rl.iql import IQL, IQLState
+from bati.rl.iql import IQL, IQLState, upgrade_checkpoint
 from bati.sinks import open_sinks
 
 __all__ = ["LATER_FIELDS", "NOT_IDENTITY", "TrainConfig", "Trainer", "TrainingError", "differing_settings", "train",
@@ -384,6 +384,8 @@ def _load_checkpoint(path: Path, template: TrainState) -> TrainState:
     except (ValueError, TypeError) as err:
         raise ValueError(f"{path} is damaged: not a readable checkpoint ({type(err).__name__}: {err}); delete it to "
                          "restart the run from step 0") from err
+    if isinstance(raw.get("iql"), dict):  # saved before IQL used flax TrainStates
+        raw = {**raw, "iql": upgrade_checkpoint(raw["iql"], int(raw.get("step", 0)))}
     try:
         state = flax.serialization.from_state_dict(template, raw)
         shapes = jax.tree_util.tree_map(jnp.shape, (template, state))

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import optax
 import tyro
+from flax.training.train_state import TrainState
 
 from bati.nets import MLP, DoubleCritic, GaussianHead, gaussian_log_prob
 
@@ -39,14 +40,28 @@ class IQLConfig:
     """Categorical actor over one-hot actions (set from the family: KuhnPoker; not a CLI option)."""
 
 
+class CriticState(TrainState):
+    """The twin critic's TrainState plus its Polyak-averaged target parameters."""
+
+    target_params: Any = None
+
+
 class IQLState(NamedTuple):
-    actor: Any
-    critic: Any
-    target_critic: Any
-    value: Any
-    actor_opt: Any
-    critic_opt: Any
-    value_opt: Any
+    actor: TrainState
+    critic: CriticState
+    value: TrainState
+
+
+def upgrade_checkpoint(raw: dict, step: int) -> dict:
+    """An IQLState's state dict saved before IQL used flax TrainStates (separate actor_opt, critic_opt,
+    value_opt and target_critic entries), in today's layout; `step` (the run's) fills each TrainState's
+    counter, which nothing reads. A dict already in today's layout is returned as it is."""
+    if "actor_opt" not in raw:
+        return raw
+    return {"actor": {"step": step, "params": raw["actor"], "opt_state": raw["actor_opt"]},
+            "critic": {"step": step, "params": raw["critic"], "target_params": raw["target_critic"],
+                       "opt_state": raw["critic_opt"]},
+            "value": {"step": step, "params": raw["value"], "opt_state": raw["value_opt"]}}
 
 
 def expectile_loss(diff: jax.Array, expectile: float) -> jax.Array:
@@ -78,8 +93,12 @@ class IQL:
         actor = self.actor_net.init(k_actor, state_in)
         critic = self.critic_net.init(k_critic, jnp.zeros((1, self.obs_dim + self.latent_dim + self.action_dim)))
         value = self.value_net.init(k_value, state_in)
-        opt = self.optimizer.init
-        return IQLState(actor, critic, critic, value, opt(actor), opt(critic), opt(value))
+        return IQLState(
+            actor=TrainState.create(apply_fn=self.actor_net.apply, params=actor, tx=self.optimizer),
+            critic=CriticState.create(apply_fn=self.critic_net.apply, params=critic, tx=self.optimizer,
+                                      target_params=critic),
+            value=TrainState.create(apply_fn=self.value_net.apply, params=value, tx=self.optimizer),
+        )
 
     # --- policy ---------------------------------------------------------------------------
     def log_prob(self, actor, obs_z: jax.Array, actions: jax.Array) -> jax.Array:
@@ -103,21 +122,21 @@ class IQL:
     # --- losses ---------------------------------------------------------------------------
     def value_loss(self, value, state: IQLState, batch, z):
         obs_z = jnp.concatenate([batch["observations"], z], -1)
-        q = self.critic_net.apply(state.target_critic, jnp.concatenate([obs_z, batch["actions"]], -1)).min(0)
+        q = self.critic_net.apply(state.critic.target_params, jnp.concatenate([obs_z, batch["actions"]], -1)).min(0)
         v = self.value_net.apply(value, obs_z)[..., 0]
         return expectile_loss(q - v, self.config.expectile).mean(), v.mean()
 
     def actor_loss(self, actor, state: IQLState, batch, z):
         obs_z = jnp.concatenate([batch["observations"], z], -1)
-        q = self.critic_net.apply(state.target_critic, jnp.concatenate([obs_z, batch["actions"]], -1)).min(0)
-        v = self.value_net.apply(state.value, obs_z)[..., 0]
+        q = self.critic_net.apply(state.critic.target_params, jnp.concatenate([obs_z, batch["actions"]], -1)).min(0)
+        v = self.value_net.apply(state.value.params, obs_z)[..., 0]
         weights = advantage_weights(q - v, self.config.temperature, self.config.max_exp_advantage)
         # Weighted log-likelihood of the DATASET actions (not of freshly sampled ones).
         log_prob = self.log_prob(actor, obs_z, batch["actions"])
         return -(jax.lax.stop_gradient(weights) * log_prob).mean(), weights.mean()
 
     def critic_loss(self, critic, state: IQLState, batch, z):
-        next_v = self.value_net.apply(state.value, jnp.concatenate([batch["next_observations"], z], -1))[..., 0]
+        next_v = self.value_net.apply(state.value.params, jnp.concatenate([batch["next_observations"], z], -1))[..., 0]
         # Our families' episodes end only by the time limit, so every transition bootstraps; a user's own
         # data may mark terminal transitions (no value after them).
         if "terminals" in batch:
@@ -130,22 +149,17 @@ class IQL:
     def update(self, state: IQLState, batch: dict, z: jax.Array) -> tuple[IQLState, dict]:
         """One IQL step on a flat batch: value, then actor and critic, then the target."""
         z = jax.lax.stop_gradient(z)
-        (v_loss, v_mean), grads = jax.value_and_grad(self.value_loss, has_aux=True)(state.value, state, batch, z)
-        value, value_opt = self._apply(state.value, grads, state.value_opt)
-        state = state._replace(value=value, value_opt=value_opt)
+        (v_loss, v_mean), grads = jax.value_and_grad(self.value_loss, has_aux=True)(state.value.params, state, batch, z)
+        state = state._replace(value=state.value.apply_gradients(grads=grads))
 
-        (a_loss, w_mean), grads = jax.value_and_grad(self.actor_loss, has_aux=True)(state.actor, state, batch, z)
-        actor, actor_opt = self._apply(state.actor, grads, state.actor_opt)
+        (a_loss, w_mean), grads = jax.value_and_grad(self.actor_loss, has_aux=True)(state.actor.params, state, batch, z)
+        actor = state.actor.apply_gradients(grads=grads)
 
-        (c_loss, q_mean), grads = jax.value_and_grad(self.critic_loss, has_aux=True)(state.critic, state, batch, z)
-        critic, critic_opt = self._apply(state.critic, grads, state.critic_opt)
-        target_critic = optax.incremental_update(critic, state.target_critic, self.config.tau)
+        (c_loss, q_mean), grads = jax.value_and_grad(self.critic_loss, has_aux=True)(state.critic.params, state, batch, z)
+        critic = state.critic.apply_gradients(grads=grads)
+        critic = critic.replace(target_params=optax.incremental_update(critic.params, critic.target_params,
+                                                                       self.config.tau))
 
-        state = IQLState(actor, critic, target_critic, value, actor_opt, critic_opt, value_opt)
         metrics = {"value_loss": v_loss, "actor_loss": a_loss, "critic_loss": c_loss, "q": q_mean, "v": v_mean,
                    "adv_weight": w_mean}
-        return state, metrics
-
-    def _apply(self, params, grads, opt_state):
-        updates, opt_state = self.optimizer.update(grads, opt_state)
-        return optax.apply_updates(params, updates), opt_state
+        return IQLState(actor, critic, state.value), metrics
