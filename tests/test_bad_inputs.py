@@ -177,7 +177,7 @@ def damage_middle_line(env: Env, patch, stack) -> None:
 def checkpoint_of_other_networks(env: Env, patch, stack) -> None:
     path = env.run / "checkpoint.msgpack"
     state = flax.serialization.msgpack_restore(path.read_bytes())
-    leaves = state["iql"]["actor"]["params"]
+    leaves = state["iql"]["actor"]["params"]["params"]  # the actor TrainState's network layers
     layer = next(iter(leaves.values()))
     layer["kernel"] = np.zeros((3, 7), np.float32)
     path.write_bytes(flax.serialization.msgpack_serialize(state))
