@@ -81,3 +81,20 @@ def test_missing_expert_and_mismatched_run_directory_are_clear_errors(tmp_path, 
 def test_shipped_experts_load():
     expert = load("PointGoal")
     assert expert(np.zeros(2), [1.0, 0.0]).shape == (2,)
+
+
+def test_an_expert_checkpoint_saved_before_train_states_loads_into_them():
+    import flax
+
+    from bati.experts.sac import SAC, SACConfig, state_from_bytes
+
+    sac = SAC(2, 2, 2, SACConfig(hidden_dims=(8,)))
+    state = sac.init(jax.random.PRNGKey(0))
+    new = flax.serialization.to_state_dict(state)
+    scalar_adam = {k: {**v, "mu": v["mu"]["log_alpha"], "nu": v["nu"]["log_alpha"]} if "mu" in v else v
+                   for k, v in new["alpha"]["opt_state"].items()}
+    old = {"actor": new["actor"]["params"], "critic": new["critic"]["params"],  # SACState before TrainStates
+           "target_critic": new["critic"]["target_params"], "log_alpha": new["alpha"]["params"]["log_alpha"],
+           "actor_opt": new["actor"]["opt_state"], "critic_opt": new["critic"]["opt_state"], "alpha_opt": scalar_adam}
+    restored = state_from_bytes(sac.init(jax.random.PRNGKey(1)), flax.serialization.msgpack_serialize(old))
+    jax.tree_util.tree_map(np.testing.assert_array_equal, restored, state)

@@ -1,12 +1,14 @@
-"""Networks shared by the experts, IQL and every task-inference method."""
+"""Networks shared by the experts, IQL and every task-inference method, and the critics' TrainState."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+from flax.training.train_state import TrainState
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 
@@ -64,3 +66,9 @@ def gaussian_log_prob(x: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.
     """log N(x; mean, exp(log_std)^2), summed over the last axis."""
     z = (x - mean) * jnp.exp(-log_std)
     return jnp.sum(-0.5 * z**2 - log_std - 0.5 * jnp.log(2 * jnp.pi), axis=-1)
+
+
+class CriticState(TrainState):
+    """A critic's flax TrainState plus its Polyak-averaged target parameters (SAC's and IQL's)."""
+
+    target_params: Any = None

@@ -8,14 +8,15 @@ conditioned on M. Actor and critics read concat(obs, task_to_array(task)).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import flax
 import jax
 import jax.numpy as jnp
 import optax
+from flax.training.train_state import TrainState
 
-from bati.nets import DoubleCritic, GaussianHead
+from bati.nets import CriticState, DoubleCritic, GaussianHead
 
 
 @dataclass(frozen=True)
@@ -29,13 +30,28 @@ class SACConfig:
 
 
 class SACState(NamedTuple):
-    actor: Any
-    critic: Any
-    target_critic: Any
-    log_alpha: jax.Array
-    actor_opt: Any
-    critic_opt: Any
-    alpha_opt: Any
+    actor: TrainState
+    critic: CriticState
+    alpha: TrainState
+    """params: {"log_alpha": the entropy temperature's log} (a dict: TrainState needs a pytree of params)."""
+
+
+def upgrade_checkpoint(raw: dict) -> dict:
+    """A SACState's state dict saved before SAC used flax TrainStates (separate actor_opt, critic_opt,
+    alpha_opt, target_critic and log_alpha entries), in today's layout (counters 0: nothing reads them).
+    A dict already in today's layout is returned as it is."""
+    if "actor_opt" not in raw:
+        return raw
+    return {"actor": {"step": 0, "params": raw["actor"], "opt_state": raw["actor_opt"]},
+            "critic": {"step": 0, "params": raw["critic"], "target_params": raw["target_critic"],
+                       "opt_state": raw["critic_opt"]},
+            "alpha": {"step": 0, "params": {"log_alpha": raw["log_alpha"]}, "opt_state": _wrap_moments(raw["alpha_opt"])}}
+
+
+def _wrap_moments(opt_state: dict) -> dict:
+    """Adam's state of a bare scalar as the state of {"log_alpha": scalar} (its moments move into the dict)."""
+    return {k: {**v, **{m: {"log_alpha": v[m]} for m in ("mu", "nu") if m in v}} if isinstance(v, dict) else v
+            for k, v in opt_state.items()}
 
 
 class SAC:
@@ -58,13 +74,10 @@ class SAC:
         critic = self.critic_net.init(k_critic, jnp.zeros((1, self.obs_dim + self.task_dim + self.action_dim)))
         log_alpha = jnp.log(jnp.asarray(self.config.init_temperature, jnp.float32))
         return SACState(
-            actor,
-            critic,
-            critic,
-            log_alpha,
-            self.optimizer.init(actor),
-            self.optimizer.init(critic),
-            self.optimizer.init(log_alpha),
+            actor=TrainState.create(apply_fn=self.actor_net.apply, params=actor, tx=self.optimizer),
+            critic=CriticState.create(apply_fn=self.critic_net.apply, params=critic, tx=self.optimizer,
+                                      target_params=critic),
+            alpha=TrainState.create(apply_fn=None, params={"log_alpha": log_alpha}, tx=self.optimizer),
         )
 
     # --- policy ---------------------------------------------------------------------------
@@ -87,9 +100,9 @@ class SAC:
     # --- losses ---------------------------------------------------------------------------
     def critic_loss(self, critic, state: SACState, batch, key):
         next_inputs = jnp.concatenate([batch["next_observations"], batch["tasks"]], -1)
-        next_action, next_log_prob = self._sample_action(state.actor, next_inputs, key)
-        next_q = self.critic_net.apply(state.target_critic, jnp.concatenate([next_inputs, next_action], -1))
-        next_v = next_q.min(0) - jnp.exp(state.log_alpha) * next_log_prob
+        next_action, next_log_prob = self._sample_action(state.actor.params, next_inputs, key)
+        next_q = self.critic_net.apply(state.critic.target_params, jnp.concatenate([next_inputs, next_action], -1))
+        next_v = next_q.min(0) - jnp.exp(state.alpha.params["log_alpha"]) * next_log_prob
         # Episodes only end by the time limit, so every transition bootstraps.
         target = batch["rewards"] + self.config.discount * next_v
         inputs = jnp.concatenate([batch["observations"], batch["tasks"], batch["actions"]], -1)
@@ -99,42 +112,38 @@ class SAC:
     def actor_loss(self, actor, state: SACState, batch, key):
         inputs = jnp.concatenate([batch["observations"], batch["tasks"]], -1)
         action, log_prob = self._sample_action(actor, inputs, key)
-        q = self.critic_net.apply(state.critic, jnp.concatenate([inputs, action], -1)).min(0)
-        return jnp.mean(jnp.exp(state.log_alpha) * log_prob - q), log_prob.mean()
+        q = self.critic_net.apply(state.critic.params, jnp.concatenate([inputs, action], -1)).min(0)
+        return jnp.mean(jnp.exp(state.alpha.params["log_alpha"]) * log_prob - q), log_prob.mean()
 
     # --- update ---------------------------------------------------------------------------
     def _update(self, state: SACState, batch, key):
         k_critic, k_actor = jax.random.split(key)
         (c_loss, q_mean), c_grads = jax.value_and_grad(self.critic_loss, has_aux=True)(
-            state.critic, state, batch, k_critic
+            state.critic.params, state, batch, k_critic
         )
-        c_updates, critic_opt = self.optimizer.update(c_grads, state.critic_opt)
-        critic = optax.apply_updates(state.critic, c_updates)
-        state = state._replace(critic=critic, critic_opt=critic_opt)
+        state = state._replace(critic=state.critic.apply_gradients(grads=c_grads))
 
         (a_loss, log_prob), a_grads = jax.value_and_grad(self.actor_loss, has_aux=True)(
-            state.actor, state, batch, k_actor
+            state.actor.params, state, batch, k_actor
         )
-        a_updates, actor_opt = self.optimizer.update(a_grads, state.actor_opt)
-        actor = optax.apply_updates(state.actor, a_updates)
+        actor = state.actor.apply_gradients(grads=a_grads)
 
         # Temperature: raise alpha when the entropy (-log_prob) is below the target.
-        alpha_grad = jax.grad(lambda la: -la * jax.lax.stop_gradient(log_prob + self.target_entropy))(
-            state.log_alpha
+        alpha_grad = jax.grad(lambda p: -p["log_alpha"] * jax.lax.stop_gradient(log_prob + self.target_entropy))(
+            state.alpha.params
         )
-        al_updates, alpha_opt = self.optimizer.update(alpha_grad, state.alpha_opt)
-        log_alpha = optax.apply_updates(state.log_alpha, al_updates)
+        alpha = state.alpha.apply_gradients(grads=alpha_grad)
 
-        target_critic = optax.incremental_update(critic, state.target_critic, self.config.tau)
-        state = SACState(actor, critic, target_critic, log_alpha, actor_opt, critic_opt, alpha_opt)
+        critic = state.critic.replace(target_params=optax.incremental_update(
+            state.critic.params, state.critic.target_params, self.config.tau))
         metrics = {
             "critic_loss": c_loss,
             "actor_loss": a_loss,
             "q": q_mean,
             "entropy": -log_prob,
-            "alpha": jnp.exp(log_alpha),
+            "alpha": jnp.exp(alpha.params["log_alpha"]),
         }
-        return state, metrics
+        return SACState(actor, critic, alpha), metrics
 
     def _update_many(self, state: SACState, batches, key):
         """Apply one update per leading-axis slice of `batches` (a scan: one dispatch)."""
@@ -148,4 +157,6 @@ def state_to_bytes(state: SACState) -> bytes:
 
 
 def state_from_bytes(template: SACState, data: bytes) -> SACState:
-    return flax.serialization.from_bytes(template, data)
+    """A saved SACState (an older layout is upgraded first)."""
+    raw = flax.serialization.msgpack_restore(data)
+    return flax.serialization.from_state_dict(template, upgrade_checkpoint(raw))

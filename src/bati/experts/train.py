@@ -132,7 +132,7 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
                     actions = rng.uniform(-1.0, 1.0, size=(config.num_envs, action_dim)).astype(np.float32)
                 else:
                     key, act_key = jax.random.split(key)
-                    actions = np.asarray(sac.act(state.actor, obs, task_arrays, act_key, deterministic=False))
+                    actions = np.asarray(sac.act(state.actor.params, obs, task_arrays, act_key, deterministic=False))
                 results = [env.step(a) for env, a in zip(envs, actions)]
                 next_obs = np.stack([r[0] for r in results]).astype(np.float32)
                 rewards = np.array([r[1] for r in results], np.float32)
@@ -148,7 +148,7 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
             progress.update(bar, completed=min(steps, config.total_steps))
             crossed = lambda every: steps // every > (steps - config.num_envs * family.record.episode_length) // every
             if crossed(config.eval_every) or steps >= config.total_steps:
-                last_eval = evaluate_expert(sac, state.actor, family, config.eval_tasks, seed=12345)
+                last_eval = evaluate_expert(sac, state.actor.params, family, config.eval_tasks, seed=12345)
                 record = {"steps": steps, "episode": episode, "wall_time": time.perf_counter() - start,
                           **{k: float(v) for k, v in metrics.items()}, **last_eval}
                 append_jsonl(out / "metrics.jsonl", record)
@@ -159,7 +159,7 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
     meta = {"obs_dim": obs_dim, "task_dim": family.task_dim, "action_dim": action_dim,
             "hidden_dims": list(config.sac.hidden_dims), "train_steps": steps, "seed": config.seed,
             "train_wall_time_s": round(time.perf_counter() - start, 1), "final_eval": last_eval}
-    save_expert((config.export_dir or _default_zoo()) / config.family, config.family, state.actor, meta)
+    save_expert((config.export_dir or _default_zoo()) / config.family, config.family, state.actor.params, meta)
     return out
 
 

@@ -114,6 +114,6 @@ def load(family_name: str, zoo_dir: str | Path | None = None) -> Expert:
     if meta.get("family") != family_name:
         raise ValueError(f"{meta_path} holds an expert of {meta.get('family')!r}, not {family_name!r}")
     sac = SAC(meta["obs_dim"], meta["task_dim"], meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
-    template = jax.eval_shape(sac.init, jax.random.PRNGKey(0)).actor  # shapes only: no compute
+    template = jax.eval_shape(sac.init, jax.random.PRNGKey(0)).actor.params  # shapes only: no compute
     params = flax.serialization.from_bytes(template, (directory / "actor.msgpack").read_bytes())
     return ExpertPolicy(family_name, params, meta)

@@ -8,7 +8,7 @@ tanh-bounded mean; discrete actions (one-hot in the data) use a categorical acto
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -16,7 +16,7 @@ import optax
 import tyro
 from flax.training.train_state import TrainState
 
-from bati.nets import MLP, DoubleCritic, GaussianHead, gaussian_log_prob
+from bati.nets import MLP, CriticState, DoubleCritic, GaussianHead, gaussian_log_prob
 
 
 TABLE3_HIDDEN_DIMS = (256, 256)
@@ -38,12 +38,6 @@ class IQLConfig:
     """Polyak rate of the target critic."""
     discrete: tyro.conf.Suppress[bool] = False
     """Categorical actor over one-hot actions (set from the family: KuhnPoker; not a CLI option)."""
-
-
-class CriticState(TrainState):
-    """The twin critic's TrainState plus its Polyak-averaged target parameters."""
-
-    target_params: Any = None
 
 
 class IQLState(NamedTuple):
