@@ -190,6 +190,10 @@ class TrainConfig:
                 raise ValueError(f"{self.method} imitates an expert of the tasks, which your own data does not have")
             if not 0.0 < self.held_out < 1.0:
                 raise ValueError(f"held_out must be in (0, 1), got {self.held_out!r}")
+            from bati.data.own import dataset_path
+
+            for dataset in self.datasets:
+                dataset_path(dataset)  # a missing one: DatasetNotFoundError before any work
         context_length = pick(self.context_length, family.default_context_length)
         rl_dims = pick(self.iql.hidden_dims, QUICK_RL_HIDDEN_DIMS if quick else TABLE3_HIDDEN_DIMS)
         resolved = replace(

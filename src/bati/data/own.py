@@ -70,18 +70,27 @@ class OwnData(FamilyData):
     held_out: TaskData | None = None
 
 
+def dataset_path(dataset: str) -> Path:
+    """Where a dataset given by directory or by Minari id lives; DatasetNotFoundError (one line) if nowhere."""
+    import os
+
+    path = Path(dataset)
+    if path.is_dir():
+        return path
+    root = Path(os.environ.get("MINARI_DATASETS_PATH", Path.home() / ".minari" / "datasets"))
+    if (root / dataset).is_dir():
+        return root / dataset
+    raise DatasetNotFoundError(f"no Minari dataset {dataset!r} (neither a dataset directory nor an id under "
+                               f"{root}; MINARI_DATASETS_PATH sets that root)")
+
+
 def _open(dataset: str):
     """A Minari dataset by id (under MINARI_DATASETS_PATH) or by directory (the one holding data/)."""
     import minari
 
-    path = Path(dataset)
+    path = dataset_path(dataset)
     try:
-        if path.is_dir():
-            return minari.MinariDataset(path / "data" if (path / "data").is_dir() else path)
-        return minari.load_dataset(dataset)
-    except FileNotFoundError as err:
-        raise DatasetNotFoundError(f"no Minari dataset {dataset!r} (neither a dataset directory nor an id under "
-                                   "MINARI_DATASETS_PATH; `minari list local` shows the ids)") from err
+        return minari.MinariDataset(path / "data" if (path / "data").is_dir() else path)
     except Exception as err:  # h5py / json / Minari errors on a damaged or foreign file
         raise DatasetError(f"cannot read the Minari dataset {dataset!r} ({type(err).__name__}: {err})") from err
 
