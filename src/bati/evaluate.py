@@ -43,6 +43,19 @@ class EvalResult:
         return out | {name: float(value) for name, value in self.diagnostics.items()}
 
 
+def reference_latents(method, params, train, task_arrays: jax.Array, context_length: int, k_context: jax.Array,
+                      k_infer: jax.Array, per_task: int = 1) -> jax.Array:
+    """Each training task's reference latent (n_tasks, latent_dim): its table entry for a method with one
+    (BATI), else the mean latent inferred from `per_task` contexts of the task's own training data."""
+    if hasattr(method, "task_latents"):
+        return method.task_latents(params)
+    n = train.rewards.shape[0]
+    ids = jnp.repeat(jnp.arange(n), per_task)
+    contexts = {**sample_contexts(train, k_context, ids, context_length), "task_arrays": task_arrays[ids]}
+    z = method.infer(params, contexts, k_infer)
+    return z.reshape(n, per_task, z.shape[-1]).mean(axis=1)
+
+
 def mixed_context_lengths(length: int, mix: float) -> tuple[int, int]:
     """(p_train, p_test) transitions of an interpolated context of `length` with a p_test ratio `mix`."""
     n_test = round(length * mix)
@@ -96,14 +109,9 @@ class Evaluator:
         for source, k in zip(self.sources, keys):
             k_context, k_infer = jax.random.split(k)
             latents[source] = self._infer(method_params, self.contexts(source, k_context), test_arrays, k_infer)
-        if hasattr(self.method, "task_latents"):  # methods with a latent per training task (BATI)
-            latents["reference"] = self.method.task_latents(method_params)
-        else:
-            train_arrays = jnp.asarray(self.data.train_task_arrays, jnp.float32)
-            k_context, k_infer = jax.random.split(keys[-1])
-            train = self.data.train
-            contexts = sample_contexts(train, k_context, jnp.arange(train.rewards.shape[0]), self.context_length)
-            latents["reference"] = self._infer(method_params, contexts, train_arrays, k_infer)
+        latents["reference"] = reference_latents(self.method, method_params, self.data.train,
+                                                 jnp.asarray(self.data.train_task_arrays, jnp.float32),
+                                                 self.context_length, *jax.random.split(keys[-1]))
         return latents, diagnostics
 
     @staticmethod
@@ -230,11 +238,8 @@ class OfflineEvaluator:
         n = self.data.train.n_tasks
         ids = jnp.repeat(jnp.arange(n), self.CONTEXTS_PER_TASK)
         z = self.method.infer(params, self._contexts(self.data.held_out, k_held, ids), k_infer)
-        if hasattr(self.method, "task_latents"):
-            references = self.method.task_latents(params)
-        else:
-            own = self.method.infer(params, self._contexts(self.data.train, k_train, ids), k_ref)
-            references = own.reshape(n, self.CONTEXTS_PER_TASK, -1).mean(axis=1)
+        references = reference_latents(self.method, params, self.data.train, self.task_arrays, self.context_length,
+                                       k_train, k_ref, per_task=self.CONTEXTS_PER_TASK)
         nearest = jnp.argmin(jnp.sum((z[:, None] - references[None]) ** 2, axis=-1), axis=1)
         accuracy = jnp.mean(nearest == ids) if self.method.infers_task else jnp.nan
         batch = self.trainer.make_batch(self.data.held_out, k_batch, k_context)
