@@ -6,6 +6,7 @@ import importlib.util
 import json
 from pathlib import Path
 
+import gymnasium as gym
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -93,3 +94,64 @@ def test_bati_train_on_own_datasets_reports_offline_diagnostics(dataset, tmp_pat
     assert all(0.0 <= e["held_out_inference_accuracy"] <= 1.0 for e in evals)
     config = json.loads((out / "config.json").read_text())
     assert config["family"] == "own" and config["datasets"] == [dataset] and config["task_key"] == "goal"
+
+
+@pytest.mark.slow
+def test_returns_in_your_env_and_bati_infer_on_an_own_data_run(dataset, tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(["train", "--datasets", dataset, "--task-key", "goal", "--eval-env", "GoalLine-v0",
+                 "--context-length", "10", "--task-batch", "4", "--batch-size", "16", "--steps", "20",
+                 "--eval-every", "10", "--log-every", "10", "--iql.hidden-dims", "16", "16", "--out-dir", str(out)])
+    assert code == 0, capsys.readouterr().err
+    assert "return in your env" in capsys.readouterr().out
+    evals = [json.loads(line) for line in (out / "eval.jsonl").read_text().splitlines()]
+    for e in evals:  # 40-step episodes, reward = -distance to the goal (at most 3.5 away)
+        assert -40 * 3.5 <= e["held_out_return"] <= 0.0 and len(e["held_out_task_returns"]) == len(GOALS)
+        assert e["held_out_return"] == pytest.approx(np.mean(e["held_out_task_returns"]), abs=1e-3)
+    summary = json.loads((out / "eval.json").read_text())
+    assert summary["held_out_return"] == pytest.approx(np.mean([e["held_out_return"] for e in evals]))
+    assert all(t["episode_return_mean"] < 0 for t in summary["data"]["tasks"])
+    assert json.loads((out / "config.json").read_text())["eval_env"] == "GoalLine-v0"
+
+    # `bati infer` on the run: a held-out window of goal 0.8 is scored under the run's table
+    data = load_own_data((dataset,), "goal", segment_length=10, held_out=0.2)
+    task = data.train_tasks.index(json.dumps(0.8))
+    window = {name: np.asarray(getattr(data.held_out, name)[task, :10]) for name in
+              ("observations", "actions", "rewards", "next_observations")}
+    np.savez(tmp_path / "context.npz", **window)
+    assert main(["infer", "--run-dir", str(out), "--context", str(tmp_path / "context.npz")]) == 0
+    inferred = json.loads(capsys.readouterr().out)
+    assert inferred["family"] == "own" and inferred["task"] in data.train_tasks and inferred["context_length"] == 10
+
+
+class _NoLimit(gym.Env):  # spaces like GoalLine's, registered without a time limit
+    observation_space = gym.spaces.Box(-2.0, 2.0, (1,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+
+class _Wider(_NoLimit):  # observations of 2 numbers: not your data's
+    observation_space = gym.spaces.Box(-2.0, 2.0, (2,), np.float32)
+
+
+gym.register("BatiTestNoLimit-v0", entry_point=_NoLimit)
+gym.register("BatiTestWider-v0", entry_point=_Wider, max_episode_steps=40)
+
+
+@pytest.mark.parametrize("extra,message", [
+    (["--eval-env", "GoalLine-v0"], "--eval-env needs --task-key"),
+    (["--task-key", "goal", "--eval-env", "NoSuchEnv-v0"], "cannot be made"),
+    (["--task-key", "goal", "--eval-env", "BatiTestNoLimit-v0"], "no time limit"),
+    (["--task-key", "goal", "--eval-env", "BatiTestWider-v0"], "observations (2,)"),
+])
+def test_a_bad_eval_env_is_one_line_and_leaves_no_run(dataset, tmp_path, capsys, extra, message):
+    out = tmp_path / "run"
+    code = main(["train", "--datasets", dataset, *extra, "--context-length", "10", "--task-batch", "4",
+                 "--steps", "20", "--out-dir", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_eval_env_is_for_own_data_only(capsys):
+    assert main(["train", "--family", "PointGoal", "--eval-env", "GoalLine-v0"]) == 2
+    assert "--eval-env is your own data's env" in capsys.readouterr().err

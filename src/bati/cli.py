@@ -322,6 +322,8 @@ class Train(TrainConfig):
             else:  # own data: no env
                 result = (f"held-out task-inference accuracy {summary['held_out_inference_accuracy']:.2f}, held-out "
                           f"representation loss {summary['held_out_representation_loss']:.3f}")
+                if "held_out_return" in summary:
+                    result += f", return in your env {summary['held_out_return']:.2f}"
             console.print(f"{config.method} on {family}, seed {summary['seed']}: {result} "
                           f"(mean of the last {summary['evaluations_averaged']} evaluations)")
 

@@ -86,6 +86,9 @@ class TrainConfig:
     dataset)."""
     held_out: float = 0.2
     """With --datasets: share of each task's segments held out for the diagnostics."""
+    eval_env: str | None = None
+    """With --datasets and --task-key: your env's gymnasium id ('package.module:Env-v0' imports the module
+    first); returns are then measured in it, each task set by reset(options={TASK_KEY: value})."""
     log_to: tuple[str, ...] = ()
     """Also log to: tensorboard (`pip install 'bati[tensorboard]'`), wandb (`pip install 'bati[wandb]'`);
     the JSONL files are always written. Not part of the run's identity."""
@@ -156,6 +159,13 @@ class TrainConfig:
                              "leave out --family")
         if not own and self.family == OWN_FAMILY:
             raise ValueError(f"family {OWN_FAMILY!r} is your own data: give it with --datasets")
+        if self.eval_env is not None:
+            if not own:
+                raise ValueError(f"--eval-env is your own data's env: the families' envs are built in (the "
+                                 f"{self.family or 'PointGoal'} runs are evaluated in theirs)")
+            from bati.data.own import check_eval_env
+
+            check_eval_env(self.eval_env, self.task_key)
         name = OWN_FAMILY if own else (self.family or "PointGoal")
         family = family_of(name, self.context_length)  # TaskError for an unknown family
         if self.method not in METHODS:
@@ -308,7 +318,7 @@ def _dataclass_from(cls, values: dict):
 NOT_IDENTITY = ("out_dir", "data_root", "log_to")
 # Fields added to TrainConfig after runs were recorded: a saved config without one had this value.
 LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": None, "test_task_range": None,
-                "datasets": [], "task_key": None, "held_out": 0.2}
+                "datasets": [], "task_key": None, "held_out": 0.2, "eval_env": None}
 
 
 def upgrade_record(record: dict) -> dict:

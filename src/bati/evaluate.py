@@ -22,7 +22,7 @@ import numpy as np
 
 from bati.data import FamilyData, sample_contexts, sample_off_policy_contexts
 from bati.envs import get_family
-from bati.envs.rollout import rollout
+from bati.envs.rollout import LockstepEnvs, rollout
 
 SOURCES = ("p_test", "p_train")
 
@@ -79,6 +79,7 @@ class Evaluator:
         train, test = data.train_tasks, data.test_tasks
         self.distances = self.family.distance_matrix(test, train)  # (n_test, n_train)
         self.train_distances = jnp.asarray(self.family.distance_matrix(train, train), jnp.float32)
+        self.envs = LockstepEnvs(self.family, data.noise)  # made at the first evaluation, reused by the next
 
     def contexts(self, source: str, key: jax.Array) -> dict:
         """One context of `context_length` transitions per test task from `source` ("p_test",
@@ -148,7 +149,7 @@ class Evaluator:
                 returns[source] = np.asarray(exact).reshape(k, n)
                 continue
             episodes = rollout(self.family, tasks, act, noise=self.data.noise,
-                               seed=[s + i for s in seeds for i in range(n)])
+                               seed=[s + i for s in seeds for i in range(n)], envs=self.envs)
             returns[source] = episodes.returns.reshape(k, n)
         results = []
         for j in range(k):
@@ -202,32 +203,39 @@ def reference_returns(data: FamilyData, seed: int = 0) -> dict[str, float]:
 
 @dataclass
 class OfflineResult:
-    """Diagnostics of a run on a user's own data (no env, so no returns)."""
+    """Diagnostics of a run on a user's own data (and its returns in their env, when given)."""
 
-    values: dict[str, float]
+    values: dict
 
     def summary(self) -> dict:
         return dict(self.values)
 
 
 class OfflineEvaluator:
-    """Offline diagnostics for a user's own datasets (`bati.data.own`), which come without an env.
+    """Offline diagnostics for a user's own datasets (`bati.data.own`), and returns in their env if given.
 
     On the held-out segments of every task: `held_out_inference_accuracy`, the share of held-out contexts
     (CONTEXTS_PER_TASK per task) whose inferred latent is nearest to their own task's reference latent
     (BATI: its table entry; encoders: the mean latent of contexts of the task's training data); NaN for a
     method that infers nothing (no-context). `held_out_representation_loss`: the method's training loss on
     a batch of held-out data (overfitting shows as a gap to the training loss in metrics.jsonl).
+    With `env_family` (an `OwnFamily` with the user's env): `held_out_return`, the mean return of one
+    episode per held-out context, acting on that context's inferred latent in its task (run j's env i
+    reset with seeds[j] + i), and `held_out_task_returns`, its mean per task.
     BATI-auto is not calibrated here (it scores with Eq. 8's equal weights).
     """
 
     CONTEXTS_PER_TASK = 8
 
-    def __init__(self, trainer, data, context_length: int):
+    def __init__(self, trainer, data, context_length: int, env_family=None, episode_length: int | None = None):
         self.trainer, self.method, self.data = trainer, trainer.method, data
         self.context_length = context_length
         self.task_arrays = jnp.asarray(data.train_task_arrays, jnp.float32)
         self.of_runs = jax.jit(jax.vmap(self._diagnostics))
+        self.ids = np.repeat(np.arange(data.train.n_tasks), self.CONTEXTS_PER_TASK)
+        self.envs = None if env_family is None else LockstepEnvs(env_family)
+        self.episode_length = episode_length
+        self.act = jax.jit(jax.vmap(trainer.method.act if trainer.method.acts_itself else trainer.iql.act))
 
     def _contexts(self, data, key, ids):
         contexts = sample_contexts(data, key, ids, self.context_length)
@@ -235,8 +243,7 @@ class OfflineEvaluator:
 
     def _diagnostics(self, params, key) -> dict:
         k_held, k_infer, k_train, k_ref, k_batch, k_context, k_loss = jax.random.split(key, 7)
-        n = self.data.train.n_tasks
-        ids = jnp.repeat(jnp.arange(n), self.CONTEXTS_PER_TASK)
+        ids = jnp.asarray(self.ids)
         z = self.method.infer(params, self._contexts(self.data.held_out, k_held, ids), k_infer)
         references = reference_latents(self.method, params, self.data.train, self.task_arrays, self.context_length,
                                        k_train, k_ref, per_task=self.CONTEXTS_PER_TASK)
@@ -244,12 +251,36 @@ class OfflineEvaluator:
         accuracy = jnp.mean(nearest == ids) if self.method.infers_task else jnp.nan
         batch = self.trainer.make_batch(self.data.held_out, k_batch, k_context)
         loss, _ = self.method.loss(params, batch, k_loss)
-        return {"held_out_inference_accuracy": accuracy, "held_out_representation_loss": loss}
+        return {"held_out_inference_accuracy": accuracy, "held_out_representation_loss": loss}, z
 
     def evaluate_runs(self, states, keys: jax.Array, seeds: list[int]) -> list[OfflineResult]:
-        values = jax.device_get(self.of_runs(states.method, keys))
-        return [OfflineResult({k: float(v[j]) for k, v in values.items()}) for j in range(len(seeds))]
+        values, latents = jax.device_get(self.of_runs(states.method, keys))
+        results = [{k: float(v[j]) for k, v in values.items()} for j in range(len(seeds))]
+        if self.envs is not None:
+            returns = self._returns(states, jnp.asarray(latents), seeds)  # (runs, contexts)
+            n_tasks = self.data.train.n_tasks
+            for j, result in enumerate(results):
+                result["held_out_return"] = float(returns[j].mean())
+                result["held_out_task_returns"] = returns[j].reshape(n_tasks, -1).mean(1).round(3).tolist()
+        return [OfflineResult(r) for r in results]
+
+    def _returns(self, states, z: jax.Array, seeds: list[int]) -> np.ndarray:
+        """(runs, contexts): the return of one episode per held-out context in the user's env."""
+        k, n = z.shape[:2]
+        policy_params = states.method if self.method.acts_itself else states.iql.actor.params
+
+        def act(obs, _):
+            obs = jnp.asarray(obs, jnp.float32).reshape(k, n, -1)
+            return np.asarray(self.act(policy_params, obs, z)).reshape(k * n, -1)
+
+        tasks = [self.data.train_tasks[i] for i in self.ids] * k
+        episodes = rollout(self.envs.family, tasks, act, noise=None, seed=[s + i for s in seeds for i in range(n)],
+                           length=self.episode_length, envs=self.envs)
+        return episodes.returns.reshape(k, n)
 
     @staticmethod
     def status(results: list[OfflineResult]) -> str:
-        return f"held-out inference accuracy {np.mean([r.values['held_out_inference_accuracy'] for r in results]):.2f}"
+        status = f"held-out inference accuracy {np.mean([r.values['held_out_inference_accuracy'] for r in results]):.2f}"
+        if "held_out_return" in results[0].values:
+            status += f", return {np.mean([r.values['held_out_return'] for r in results]):.1f}"
+        return status

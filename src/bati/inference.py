@@ -30,7 +30,8 @@ import numpy as np
 
 from bati.data import FamilyData, load_family_data, sample_contexts
 from bati.data.batch import TRANSITION_FIELDS
-from bati.envs import get_family
+from bati.config import family_of
+from bati.data.own import load_own_data
 from bati.errors import BatiError
 from bati.evaluate import calibrate as calibrate_method
 from bati.io import git_commit
@@ -57,8 +58,12 @@ def load_run(run_dir: Path, calibrate: bool = True) -> LoadedRun:
     """A run of a likelihood method at its last checkpoint (BATI-auto calibrated unless `calibrate` is False)."""
     run_dir = Path(run_dir)
     config = TrainConfig.from_record(read_run_config(run_dir)).resolved()
-    data = load_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
-                            tasks=config.task_split())
+    if config.datasets:  # your own data: the same training / held-out split as the run's
+        data = load_own_data(config.datasets, config.task_key, config.context_length, config.held_out,
+                             seed=config.data_seed)
+    else:
+        data = load_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
+                                tasks=config.task_split())
     trainer = Trainer(config, data)
     method = trainer.method
     if not hasattr(method, "task_latents") or not hasattr(method, "score"):
@@ -69,7 +74,7 @@ def load_run(run_dir: Path, calibrate: bool = True) -> LoadedRun:
     state = load_checkpoint(checkpoint, trainer.init(jax.random.PRNGKey(0)))
     params = state.method
     if calibrate and method.calibrates:
-        family = get_family(config.family)
+        family = family_of(config.family, config.context_length)
         distances = jnp.asarray(family.distance_matrix(data.train_tasks, data.train_tasks), jnp.float32)
         params, _ = calibrate_method(method, params, data, config.eval_context_length, jax.random.PRNGKey(0xCA1),
                                      distances)
@@ -152,7 +157,7 @@ def infer_context(run_dir: Path, context_file: Path, quantile: float = QUANTILE,
     if not 0.0 < quantile < 1.0:
         raise InferenceError(f"quantile must be in (0, 1), got {quantile!r}")
     run = load_run(run_dir)
-    family = get_family(run.config.family)
+    family = family_of(run.config.family, run.config.context_length)
     spec = run.method.spec
     context = read_context(Path(context_file), spec.obs_dim, spec.action_dim)
     scores = table_scores(run, context)[0]

@@ -5,7 +5,7 @@ re-infers z with the method's own `infer` from that env's own transitions so far
 to C of them (C = the evaluation context length). A behaviour-agnostic likelihood (BATI's Eq. 8) is
 sound on such a context, whoever acted; an encoder meets yet another behaviour (its own policy's).
 All test tasks (and all repeats) step in lockstep with one batched policy call per step: the loop is
-`bati.envs.rollout.rollout`, whose envs here write each transition into a per-task record.
+`bati.envs.rollout.rollout`, whose `on_step` writes each transition into a per-task record.
 
 Choices (docs/methods.md, "Self-collected context"):
 
@@ -36,13 +36,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import gymnasium as gym
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bati.envs import EPISODE_LENGTH
-from bati.envs.rollout import rollout
+from bati.envs.rollout import LockstepEnvs, rollout
 from bati.errors import BatiError
 from bati.evaluate import Evaluator, calibrate
 
@@ -118,52 +116,25 @@ class SelfCollected:
                       "context_length": self.context_length, "prior": PRIOR}
 
 
-class _Recording(gym.Wrapper):
-    """An env that writes each transition (s, a, r, s') it steps into its task's record."""
-
-    def __init__(self, env: gym.Env, record: _Record, index: int):
-        super().__init__(env)
-        self._record, self._index, self._obs = record, index, None
-
-    def reset(self, **kwargs):
-        self._obs, info = self.env.reset(**kwargs)
-        return self._obs, info
-
-    def step(self, action):
-        out = self.env.step(action)
-        self._record.write(self._index, self._obs, action, out[1], out[0])
-        self._obs = out[0]
-        return out
-
-
 class _Record:
-    """Every env's transitions so far (all episodes), and a family stand-in whose envs record into it."""
+    """Every env's transitions so far (all episodes), written by the rollout's `on_step` as they are taken."""
 
-    def __init__(self, family, n_envs: int, total_steps: int, obs_dim: int, action_dim: int):
-        self.family = family
+    def __init__(self, n_envs: int, total_steps: int, obs_dim: int, action_dim: int):
         self.arrays = {"observations": np.zeros((n_envs, total_steps, obs_dim), np.float32),
                        "actions": np.zeros((n_envs, total_steps, action_dim), np.float32),
                        "rewards": np.zeros((n_envs, total_steps), np.float32),
                        "next_observations": np.zeros((n_envs, total_steps, obs_dim), np.float32)}
         self.count = np.zeros(n_envs, np.int64)
-        self._made = 0
 
-    @property
-    def record(self):  # the family's record (rollout reads its episode length when not given one)
-        return self.family.record
-
-    def make_env(self, task, noise=None):  # what `rollout` asks of a family
-        env = _Recording(self.family.make_env(task, noise), self, self._made % len(self.count))
-        self._made += 1
-        return env
-
-    def write(self, index: int, obs, action, reward, next_obs) -> None:
-        t = self.count[index]
-        self.arrays["observations"][index, t] = obs
-        self.arrays["actions"][index, t] = action
-        self.arrays["rewards"][index, t] = reward
-        self.arrays["next_observations"][index, t] = next_obs
-        self.count[index] = t + 1
+    def write(self, _step: int, observations, actions, step) -> None:
+        """`rollout`'s on_step: append each env's transition (an env whose episode ended writes nothing)."""
+        rows = np.flatnonzero(step.alive)
+        t = self.count[rows]
+        self.arrays["observations"][rows, t] = observations[rows]
+        self.arrays["actions"][rows, t] = actions[rows]
+        self.arrays["rewards"][rows, t] = step.rewards[rows]
+        self.arrays["next_observations"][rows, t] = step.observations[rows]
+        self.count[rows] = t + 1
 
     def window(self, end: int, length: int, shape: tuple[int, int]) -> dict:
         """Each env's window of `length` slots over its transitions 0 .. end - 1, as (runs, n, length, ...)."""
@@ -180,11 +151,12 @@ class SelfCollector:
     """
 
     def __init__(self, evaluator: Evaluator, reinfer_every: int, episodes: int = 1,
-                 episode_length: int = EPISODE_LENGTH):
+                 episode_length: int | None = None):
         self.reinfer_every = check_setting("reinfer_every", reinfer_every)
         self.episodes = check_setting("episodes", episodes)
-        self.episode_length = check_setting("episode_length", episode_length)
         family = evaluator.family
+        self.episode_length = check_setting(
+            "episode_length", family.record.episode_length if episode_length is None else episode_length)
         if getattr(family, "return_unit", "episode") != "episode":
             raise OnlineError(f"{family.name}: its return is computed exactly per {family.return_unit}, not rolled "
                               f"out, so it has no self-collected context; choose a family evaluated by episodes")
@@ -218,7 +190,7 @@ class SelfCollector:
         policy_params = states.method if ev.method.acts_itself else states.iql.actor.params
         test_arrays = jnp.asarray(ev.data.test_task_arrays, jnp.float32)
         obs_dim, action_dim = ev.data.obs_dim, ev.data.action_dim
-        record = _Record(ev.family, runs * n, total, obs_dim, action_dim)
+        record = _Record(runs * n, total, obs_dim, action_dim)
         schedule = reinference_steps(k, total)
         z = jnp.asarray(prior)
         trajectory = [prior]
@@ -229,21 +201,22 @@ class SelfCollector:
             return self.infer(method_params, window, test_arrays, step_keys)
 
         returns, rewards = [], []
-        for episode in range(self.episodes):
-            def act(obs, step, episode=episode):
-                nonlocal z
-                done = episode * self.episode_length + step  # transitions taken so far
-                if done >= k and done % k == 0:
-                    z = reinfer(done)
-                    trajectory.append(np.asarray(z))
-                obs = jnp.asarray(obs, jnp.float32).reshape(runs, n, -1)
-                return np.asarray(ev.act(policy_params, obs, z)).reshape(runs * n, -1)
+        with LockstepEnvs(ev.family, ev.data.noise) as envs:
+            for episode in range(self.episodes):
+                def act(obs, step, episode=episode):
+                    nonlocal z
+                    done = episode * self.episode_length + step  # transitions taken so far
+                    if done >= k and done % k == 0:
+                        z = reinfer(done)
+                        trajectory.append(np.asarray(z))
+                    obs = jnp.asarray(obs, jnp.float32).reshape(runs, n, -1)
+                    return np.asarray(ev.act(policy_params, obs, z)).reshape(runs * n, -1)
 
-            reset = [s + i + EPISODE_SEED_STRIDE * episode for s in seeds for i in range(n)]
-            episodes = rollout(record, list(ev.data.test_tasks) * runs, act, noise=ev.data.noise, seed=reset,
-                               length=self.episode_length)
-            returns.append(episodes.returns.reshape(runs, n))
-            rewards.append(episodes.rewards.reshape(runs, n, -1))
+                reset = [s + i + EPISODE_SEED_STRIDE * episode for s in seeds for i in range(n)]
+                episodes = rollout(ev.family, list(ev.data.test_tasks) * runs, act, noise=ev.data.noise, seed=reset,
+                                   length=self.episode_length, envs=envs, on_step=record.write)
+                returns.append(episodes.returns.reshape(runs, n))
+                rewards.append(episodes.rewards.reshape(runs, n, -1))
         if total % k == 0:  # the latent that would act next
             z = reinfer(total)
             trajectory.append(np.asarray(z))

@@ -201,6 +201,24 @@ def _forgotten_unless_started(out: Path):
         raise
 
 
+def own_env(config: TrainConfig, data) -> tuple:
+    """(family, episode length) of the user's --eval-env for a run on own data, or () without one; EnvError
+    (one line) if its spaces do not match the data's."""
+    if config.eval_env is None:
+        return ()
+    from bati.data.own import EnvError, OwnFamily, check_eval_env
+
+    length = check_eval_env(config.eval_env, config.task_key)
+    family = OwnFamily(config.context_length, config.eval_env, config.task_key)
+    probe = family.make_env(data.train_tasks[0])
+    shapes = (probe.observation_space.shape, probe.action_space.shape)
+    probe.close()
+    if shapes != ((data.obs_dim,), (data.action_dim,)):
+        raise EnvError(f"--eval-env {config.eval_env!r} has observations {shapes[0]} and actions {shapes[1]}, but "
+                       f"your datasets have ({data.obs_dim},) and ({data.action_dim},)")
+    return family, length
+
+
 def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict]:
     """train_seeds once its run directories are checked, claimed and locked."""
     config, seeds = configs[0], [c.seed for c in configs]
@@ -216,7 +234,7 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict
                                   progress=show_progress, tasks=config.task_split())
     trainer = Trainer(config, data)
     if config.datasets:
-        evaluator = OfflineEvaluator(trainer, data, config.eval_context_length)
+        evaluator = OfflineEvaluator(trainer, data, config.eval_context_length, *own_env(config, data))
     else:
         evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length)
     runs = [_SeedRun.open(c, trainer) for c in configs]
@@ -351,11 +369,13 @@ def summarize_run(out: Path, last: int = 5) -> dict:
         summary[f"{source}_return"] = float(np.mean([e[f"{source}_return"] for e in tail]))
         summary[f"{source}_inference_error"] = float(np.mean([e[f"{source}_inference_error"] for e in tail]))
         summary[f"{source}_task_returns"] = evals[-1][f"{source}_task_returns"]
-    for name in ("held_out_inference_accuracy", "held_out_representation_loss"):  # own data's diagnostics
+    for name in ("held_out_inference_accuracy", "held_out_representation_loss", "held_out_return"):  # own data's
         if name in evals[-1]:
             summary[name] = float(np.mean([e[name] for e in tail]))
+    if "held_out_task_returns" in evals[-1]:
+        summary["held_out_task_returns"] = evals[-1]["held_out_task_returns"]
     curve_keys = ("step", "p_test_return", "p_train_return", "p_test_inference_error", "p_train_inference_error",
-                  "held_out_inference_accuracy", "held_out_representation_loss")
+                  "held_out_inference_accuracy", "held_out_representation_loss", "held_out_return")
     summary["curve"] = [{k: e[k] for k in curve_keys if k in e} for e in evals]
     # a method's own numbers (e.g. BATI-auto's calibrated state weight), averaged like the returns
     extra = [k for k, v in evals[-1].items() if k not in curve_keys and isinstance(v, (int, float))

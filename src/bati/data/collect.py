@@ -34,6 +34,7 @@ import numpy as np
 
 from bati.data import store
 from bati.envs import FAMILY_NAMES, Task, TaskFamily, TaskSplit, get_family
+from bati.envs.rollout import LockstepEnvs
 from bati.io import atomic_write_json, check_directory, git_commit, hold_lock
 
 N_TRAIN = 20
@@ -375,42 +376,37 @@ def _chunks(family: TaskFamily, plan: Plan, chunk_size: int) -> list[_Chunk]:
 
 
 def _rollout_chunk(family: TaskFamily, expert, noise: float, seed: int, chunk: _Chunk, chunk_size: int,
-                   pool: list, on_step=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   envs: LockstepEnvs, on_step=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Roll out one chunk in lockstep: (observations (K, T + 1, obs_dim), actions, rewards).
 
     The result depends only on (seed, chunk, chunk_size): envs are reset with the episodes' seeds
     and the expert's actions use the chunk's own key, so any process can roll out any chunk.
-    `pool` holds the caller's envs (grown as needed, reused across chunks).
+    `envs` is the caller's pool (reused across chunks).
     """
     import jax
 
-    k_envs = len(chunk.tasks)
-    while len(pool) < k_envs:
-        pool.append(family.make_env(chunk.tasks[len(pool)], noise))
-    envs = pool[:k_envs]
+    k_envs, length = len(chunk.tasks), family.record.episode_length
     policy_tasks = np.zeros((chunk_size, family.task_dim), np.float32)  # padded: one jit shape
     policy_tasks[:k_envs] = chunk.policy_tasks
-    obs = np.zeros((k_envs, family.record.episode_length + 1, envs[0].observation_space.shape[0]))
-    actions = np.zeros((k_envs, family.record.episode_length, envs[0].action_space.shape[0]), np.float32)
-    rewards = np.zeros((k_envs, family.record.episode_length), np.float32)
-    for k, env in enumerate(envs):
-        env.unwrapped.set_task(chunk.tasks[k])
-        obs[k, 0] = env.reset(seed=chunk.reset_seeds[k])[0]
+    first = envs.reset(chunk.tasks, chunk.reset_seeds)
+    obs = np.zeros((k_envs, length + 1, first.shape[-1]))
+    obs[:, 0] = first
+    actions, rewards = None, np.zeros((k_envs, length), np.float32)
     # the expert runs on the CPU in every process (workers never touch an accelerator), so the
     # actions do not depend on where, or in how many processes, the chunk is rolled out
     with jax.default_device(jax.devices("cpu")[0]):
         base_key = jax.random.fold_in(jax.random.PRNGKey(seed), _PLAN_STREAM)
         chunk_key = jax.random.fold_in(base_key, chunk.index)
         padded = np.zeros((chunk_size, obs.shape[-1]), np.float32)
-        for t in range(family.record.episode_length):
+        for t in range(length):
             padded[:k_envs] = obs[:, t]
-            step_key = jax.random.fold_in(chunk_key, t)
-            act = expert.act_from_arrays(padded, policy_tasks, False, step_key)
+            act = np.asarray(expert.act_from_arrays(padded, policy_tasks, False, jax.random.fold_in(chunk_key, t)))
+            if actions is None:
+                actions = np.zeros((k_envs, length, act.shape[-1]), np.float32)
             actions[:, t] = act[:k_envs]
-            for k, env in enumerate(envs):
-                next_obs, reward, _, _, _ = env.step(actions[k, t])
-                obs[k, t + 1] = next_obs
-                rewards[k, t] = reward
+            step = envs.step(actions[:, t])
+            obs[:, t + 1] = step.observations
+            rewards[:, t] = step.rewards
             if on_step is not None:
                 on_step(k_envs)
     return obs, actions, rewards
@@ -433,8 +429,7 @@ def _worker_init(family_name: str, zoo_dir: str | None, noise: float, seed: int,
             value = " ".join(filter(None, [os.environ.get(name, ""), value]))
         os.environ[name] = value  # before jax is first imported (this module does not import it)
     os.environ["JAX_PLATFORMS"] = "cpu"  # N processes must not share (or grab) one accelerator
-    _WORKER.update(family_name=family_name, zoo_dir=zoo_dir, noise=noise, seed=seed, chunk_size=chunk_size,
-                   pool=[])
+    _WORKER.update(family_name=family_name, zoo_dir=zoo_dir, noise=noise, seed=seed, chunk_size=chunk_size)
 
 
 def _worker_rollout(chunk: _Chunk) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
@@ -442,8 +437,9 @@ def _worker_rollout(chunk: _Chunk) -> tuple[int, np.ndarray, np.ndarray, np.ndar
     if "expert" not in w:  # loaded here, not in the initializer: its errors reach the caller intact
         w["family"] = get_family(w["family_name"])
         w["expert"] = load_expert(w["family_name"], w["zoo_dir"])
+        w["envs"] = LockstepEnvs(w["family"], w["noise"])
     return (chunk.index, *_rollout_chunk(w["family"], w["expert"], w["noise"], w["seed"], chunk,
-                                         w["chunk_size"], w["pool"]))
+                                         w["chunk_size"], w["envs"]))
 
 
 def run_collection(
@@ -494,15 +490,11 @@ def run_collection(
     with bar:
         task_id = bar.add_task("collect", total=len(jobs) * family.record.episode_length)
         if workers == 1:
-            pool: list = []
-            try:
+            with LockstepEnvs(family, noise) as envs:
                 for chunk in chunks:
-                    arrays = _rollout_chunk(family, expert, noise, seed, chunk, chunk_size, pool,
+                    arrays = _rollout_chunk(family, expert, noise, seed, chunk, chunk_size, envs,
                                             on_step=lambda n: bar.advance(task_id, n))
                     consume(chunk, *arrays)
-            finally:
-                for env in pool:
-                    env.close()
         else:
             _run_parallel(family, chunks, chunk_size, noise, seed, workers, zoo_dir, consume,
                           lambda n: bar.advance(task_id, n * family.record.episode_length))

@@ -11,7 +11,10 @@
   bootstrap past it;
 - a share `held_out` of each task's segments (at least one) is kept out of training for the offline
   diagnostics (`bati.evaluate.OfflineEvaluator`: task-inference accuracy on held-out contexts and the
-  representation loss on held-out data). With no environment, no returns are measured.
+  representation loss on held-out data);
+- returns are measured only when the user names their env (`eval_env`, with `task_key`): the policy acts
+  in it on each held-out context's inferred latent, the env told its task as the data recorded it,
+  `reset(options={task_key: value})` (`TaskOptions`). Without one, no returns are measured.
 
 Tasks hold different numbers of segments: each task's arrays are padded to the largest, and the
 samplers draw only from each task's valid part (`TaskData.counts`).
@@ -23,11 +26,13 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import gymnasium as gym
 import jax.numpy as jnp
 import numpy as np
 
 from bati.data.batch import FamilyData, TaskData
 from bati.data.store import DatasetError, DatasetNotFoundError
+from bati.errors import BatiError
 from bati.envs import FamilyRecord, TaskFamily
 
 OWN_FAMILY = "own"
@@ -43,12 +48,14 @@ def own_record(segment_length: int) -> FamilyRecord:
 
 class OwnFamily(TaskFamily):
     """What bati knows of a user's data as a family: its record (segments of `segment_length`) and task
-    labels, told apart by identity (distance 0 or 1). It has no env."""
+    labels, told apart by identity (distance 0 or 1). Its env is the user's `eval_env` (a gymnasium id),
+    told its task through reset options; without one it has none."""
 
     record = own_record(200)
 
-    def __init__(self, segment_length: int = 200):
+    def __init__(self, segment_length: int = 200, eval_env: str | None = None, task_key: str | None = None):
         self.record = own_record(segment_length)
+        self.eval_env, self.task_key = eval_env, task_key
 
     def _sample(self, n, rng):
         raise TypeError("your own data's tasks are its datasets' (or --task-key's): none can be sampled")
@@ -60,7 +67,48 @@ class OwnFamily(TaskFamily):
         return float(a != b)
 
     def make_env(self, task, noise=None, **kwargs):
-        raise TypeError("your own data comes without an env: runs on it report offline diagnostics only")
+        if self.eval_env is None:
+            raise TypeError("your own data comes without an env: runs on it report offline diagnostics only "
+                            "(give --eval-env to measure returns)")
+        return TaskOptions(gym.make(self.eval_env, **kwargs), self.task_key, task)
+
+
+class TaskOptions(gym.Wrapper):
+    """A user's env told its task the way their data recorded it: `reset(options={task_key: value})`,
+    where the task is the JSON label `read_episodes` made of that value."""
+
+    def __init__(self, env: gym.Env, task_key: str, task: str):
+        super().__init__(env)
+        self.task_key = task_key
+        self.set_task(task)
+
+    def set_task(self, task: str) -> None:
+        self.task, self._value = task, json.loads(task)
+
+    def reset(self, *, seed=None, options=None):
+        return self.env.reset(seed=seed, options={**(options or {}), self.task_key: self._value})
+
+
+def check_eval_env(eval_env: str, task_key: str | None) -> int:
+    """The episode length of the user's env `eval_env` (its time limit); EnvError (one line) if it cannot be
+    made, has no time limit, or cannot be told its task (no --task-key)."""
+    if task_key is None:
+        raise EnvError("--eval-env needs --task-key: the env is told each task by reset(options={KEY: value}), "
+                       "as your data recorded it")
+    try:
+        env = gym.make(eval_env)
+    except Exception as err:  # an unknown id, a module that does not import, the env's own error
+        raise EnvError(f"--eval-env {eval_env!r} cannot be made ({type(err).__name__}: {err}); give a registered "
+                       "gymnasium id, or 'package.module:Env-v0' to import its module first") from err
+    limit = env.spec.max_episode_steps if env.spec is not None else None
+    env.close()
+    if not limit:
+        raise EnvError(f"--eval-env {eval_env!r} has no time limit: register it with max_episode_steps")
+    return int(limit)
+
+
+class EnvError(BatiError, ValueError):
+    """The user's --eval-env cannot serve the evaluation (one line; nothing was done)."""
 
 
 @dataclass
@@ -177,7 +225,8 @@ def load_own_data(datasets: tuple[str, ...], task_key: str | None, segment_lengt
             (-1,) + v.shape[1:]) for k, v in cut.items()}
         train_parts.append(pick(order[n_held:]))
         held_parts.append(pick(order[:n_held]))
-        report["tasks"].append({"task": label, "episodes": len(episodes), "segments": n_seg, "held_out": n_held})
+        report["tasks"].append({"task": label, "episodes": len(episodes), "segments": n_seg, "held_out": n_held,
+                                "episode_return_mean": float(np.mean([e["rewards"].sum() for e in episodes]))})
     obs_dim, action_dim = train_parts[0]["observations"].shape[-1], train_parts[0]["actions"].shape[-1]
     n_tasks = len(labels)
     task_arrays = np.eye(n_tasks, dtype=np.float32)

@@ -18,7 +18,7 @@ import numpy as np
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from bati.envs import get_family
-from bati.envs.rollout import rollout
+from bati.envs.rollout import LockstepEnvs, rollout
 from bati.experts.sac import SAC, SACConfig, state_from_bytes, state_to_bytes
 from bati.experts.zoo import save_expert
 from bati.io import append_jsonl, atomic_save_npz, check_run_config
@@ -109,23 +109,20 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
         state, key, rng, episode, wall_time = _load_checkpoint(out, buffer, state)
     steps = buffer.size
 
-    envs = [family.make_env(family.sample_tasks(1, seed=0)[0], noise=0.0) for _ in range(config.num_envs)]
+    envs = LockstepEnvs(family, noise=0.0)
     progress = Progress(
         TextColumn(f"[bold]{config.family} expert"), BarColumn(), TextColumn("{task.completed:,}/{task.total:,}"),
         TextColumn("{task.fields[status]}"), TimeElapsedColumn(), TimeRemainingColumn(), disable=not show_progress,
     )
     start = time.perf_counter() - wall_time
     last_eval = None
-    with progress:
+    with progress, envs:
         bar = progress.add_task("train", total=config.total_steps, completed=steps, status="")
         while steps < config.total_steps:
             tasks = family.sample_tasks(config.num_envs, rng)
             task_arrays = np.stack([family.task_to_array(t) for t in tasks])
-            obs = []
-            for i, (env, task) in enumerate(zip(envs, tasks)):
-                env.unwrapped.set_task(task)
-                obs.append(env.reset(seed=config.seed * 1_000_003 + episode * config.num_envs + i)[0])
-            obs = np.stack(obs).astype(np.float32)
+            first_seed = config.seed * 1_000_003 + episode * config.num_envs
+            obs = envs.reset(tasks, range(first_seed, first_seed + config.num_envs)).astype(np.float32)
             metrics = {}
             for _ in range(family.record.episode_length):
                 if steps < config.start_steps:
@@ -133,10 +130,9 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
                 else:
                     key, act_key = jax.random.split(key)
                     actions = np.asarray(sac.act(state.actor.params, obs, task_arrays, act_key, deterministic=False))
-                results = [env.step(a) for env, a in zip(envs, actions)]
-                next_obs = np.stack([r[0] for r in results]).astype(np.float32)
-                rewards = np.array([r[1] for r in results], np.float32)
-                buffer.add(observations=obs, tasks=task_arrays, actions=actions, rewards=rewards,
+                step = envs.step(actions)
+                next_obs = step.observations.astype(np.float32)
+                buffer.add(observations=obs, tasks=task_arrays, actions=actions, rewards=step.rewards.astype(np.float32),
                            next_observations=next_obs)
                 obs = next_obs
                 steps += config.num_envs
