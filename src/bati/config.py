@@ -134,6 +134,8 @@ class TrainConfig:
         for name in method_sections():
             if name != own:
                 record.pop(name)
+        if self.family not in (None, OWN_FAMILY):  # the env's version is part of what the run trained on
+            record["family_version"] = family_of(self.family).record.version
         return record
 
     def task_split(self) -> TaskSplit:
@@ -318,7 +320,7 @@ def _dataclass_from(cls, values: dict):
 NOT_IDENTITY = ("out_dir", "data_root", "log_to")
 # Fields added to TrainConfig after runs were recorded: a saved config without one had this value.
 LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": None, "test_task_range": None,
-                "datasets": [], "task_key": None, "held_out": 0.2, "eval_env": None}
+                "datasets": [], "task_key": None, "held_out": 0.2, "eval_env": None, "family_version": 1}
 
 
 def upgrade_record(record: dict) -> dict:

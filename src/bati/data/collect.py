@@ -240,6 +240,7 @@ def collect(
                 "action_dim": action_dim,
                 "task_dim": fam.task_dim,
                 "kind": fam.kind,
+                "family_version": fam.record.version,
                 "task_split": tasks.record(),
                 "train_tasks": plan.train_tasks,
                 "test_tasks": plan.test_tasks,

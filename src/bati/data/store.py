@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from bati.envs import TaskFamily, TaskSplit
+from bati.envs import TaskFamily, TaskSplit, get_family
 from bati.io import pid_alive
 
 MANIFEST = "manifest.json"
@@ -61,10 +61,12 @@ def collection_name(scale: str, seed: int, noise: float) -> str:
 
 def collection_dir(root: str | Path, family: str, scale: str, seed: int, noise: float,
                    tasks: TaskSplit | None = None) -> Path:
-    """`<root>/<Family>/<scale>-seed<S>-eps<eps>[<split>]` (noise already validated / defaulted); a
-    non-default task split adds its label, e.g. `-tasks10x30` or `-train0to3.14159-test3.14159to6.28319`."""
+    """`<root>/<Family>/<scale>-seed<S>-eps<eps>[<split>][-v<version>]` (noise already validated / defaulted);
+    a non-default task split adds its label, e.g. `-tasks10x30` or `-train0to3.14159-test3.14159to6.28319`,
+    and an env version after the first its number (so the data of an earlier version stays where it was)."""
     label = "" if tasks is None else tasks.label()
-    return Path(root) / family / (collection_name(scale, seed, noise) + label)
+    version = get_family(family).record.version
+    return Path(root) / family / (collection_name(scale, seed, noise) + label + (f"-v{version}" if version > 1 else ""))
 
 
 def dataset_name(split: str, index: int) -> str:
@@ -118,6 +120,10 @@ def read_manifest(path: Path, family: TaskFamily, scale: str, seed: int, noise: 
     missing = [key for key in REQUIRED_KEYS if key not in manifest]
     if missing:
         raise DatasetError(f"{manifest_path} lacks {', '.join(missing)}; {redo}")
+    version = manifest.get("family_version", 1)  # collections made before versions existed: version 1
+    if version != family.record.version:
+        raise DatasetError(f"{path} holds {family.name} data of env version {version}; this bati's {family.name} is "
+                           f"version {family.record.version} (docs/environments.md says what changed); {redo}")
     train, test = tasks.draw(family, seed)
     for name, expected_tasks in (("train_tasks", train), ("test_tasks", test)):
         stored = manifest[name]

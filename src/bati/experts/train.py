@@ -153,6 +153,7 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
                 _save_checkpoint(out, state, key, rng, episode, buffer, time.perf_counter() - start)
 
     meta = {"obs_dim": obs_dim, "task_dim": family.task_dim, "action_dim": action_dim,
+            "family_version": family.record.version,
             "hidden_dims": list(config.sac.hidden_dims), "train_steps": steps, "seed": config.seed,
             "train_wall_time_s": round(time.perf_counter() - start, 1), "final_eval": last_eval}
     save_expert((config.export_dir or _default_zoo()) / config.family, config.family, state.actor.params, meta)

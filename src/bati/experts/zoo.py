@@ -113,6 +113,10 @@ def load(family_name: str, zoo_dir: str | Path | None = None) -> Expert:
     meta = json.loads(meta_path.read_text())
     if meta.get("family") != family_name:
         raise ValueError(f"{meta_path} holds an expert of {meta.get('family')!r}, not {family_name!r}")
+    version, current = meta.get("family_version", 1), get_family(family_name).record.version
+    if version != current:
+        raise ValueError(f"{meta_path} is an expert for {family_name}'s env version {version}, not the current "
+                         f"version {current}; retrain it with `bati experts train --family {family_name}`")
     sac = SAC(meta["obs_dim"], meta["task_dim"], meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
     template = jax.eval_shape(sac.init, jax.random.PRNGKey(0)).actor.params  # shapes only: no compute
     params = flax.serialization.from_bytes(template, (directory / "actor.msgpack").read_bytes())
