@@ -336,3 +336,13 @@ def test_families_list_and_kuhn_install_hint_without_openspiel(monkeypatch, caps
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and "Traceback" not in err, err
     assert "KuhnPoker needs OpenSpiel" in lines[0] and "pip install 'bati[games]'" in lines[0]
+
+
+def test_opponents_are_drawn_near_player_2s_equilibrium():
+    # against player 2's Nash policy no player-1 policy earns more than the game's value, -1/18 per hand
+    assert kuhn.best_response_value(kuhn.EQUILIBRIUM) == pytest.approx(-1 / 18)
+    tasks = np.array(get_family("KuhnPoker").sample_tasks(2000, seed=0))
+    low = 0.75 * kuhn.EQUILIBRIUM  # version 2: 3/4 equilibrium + 1/4 uniform in [0, 1]^6
+    assert np.all(tasks >= low - 1e-12) and np.all(tasks <= low + 0.25 + 1e-12)
+    np.testing.assert_allclose(tasks.mean(0), low + 0.125, atol=0.01)
+    assert get_family("KuhnPoker").record.version == 2
