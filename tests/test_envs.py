@@ -296,9 +296,9 @@ def test_action_map_and_inverse_are_inverses(m, dim):
     np.testing.assert_allclose(action_map(np.zeros(dim), m), np.full(dim, bias), atol=1e-15)
 
 
-def test_action_map_rotation_angle_is_pi_m_over_12():
+def test_action_map_rotation_angle_is_pi_m_over_6():
     m = 1.7
-    theta = math.pi * m / 12
+    theta = math.pi * m / 6  # version 2: up to pi/2 at m = +-3
     mapped = action_map(np.array([1.0, 0.0]), m) - 0.1 * m / 3  # one Givens rotation for 2-D
     np.testing.assert_allclose(mapped, [math.cos(theta), math.sin(theta)], atol=1e-15)
     np.testing.assert_allclose(action_map(np.array([0.3, -0.2, 0.9]), 0.0), [0.3, -0.2, 0.9])
