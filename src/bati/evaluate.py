@@ -62,6 +62,25 @@ def mixed_context_lengths(length: int, mix: float) -> tuple[int, int]:
     return length - n_test, n_test
 
 
+class RunsPolicy:
+    """The policy of k runs acting in k x n lockstep envs: IQL's actor on a latent, or the method itself
+    (DPT), vmapped over runs and jitted once."""
+
+    def __init__(self, method, iql):
+        self.method = method
+        self.apply = jax.jit(jax.vmap(method.act if method.acts_itself else iql.act))
+
+    def params(self, states):
+        """The policy's parameters in `states` (stacked over runs)."""
+        return states.method if self.method.acts_itself else states.iql.actor.params
+
+    def __call__(self, params, observations, z) -> np.ndarray:
+        """Actions (k * n, action_dim) for observations (k * n, obs_dim) and latents z (k, n, latent_dim)."""
+        k, n = z.shape[:2]
+        observations = jnp.asarray(observations, jnp.float32).reshape(k, n, -1)
+        return np.asarray(self.apply(params, observations, z)).reshape(k * n, -1)
+
+
 class Evaluator:
     def __init__(self, method, iql, data: FamilyData, context_length: int, context_mix: float | None = None):
         self.method, self.iql, self.data = method, iql, data
@@ -72,9 +91,7 @@ class Evaluator:
         self.context_mix = context_mix
         self.sources = SOURCES if context_mix is None else ("mixed",)
         self.infer = jax.jit(self._infer)
-        # The policy: IQL's actor on z, or the method itself (DPT); vmapped over runs (seeds).
-        act = method.act if method.acts_itself else iql.act
-        self.act = jax.jit(jax.vmap(act))
+        self.policy = RunsPolicy(method, iql)
         self.latents_of_runs = jax.jit(jax.vmap(self.infer_latents))
         train, test = data.train_tasks, data.test_tasks
         self.distances = self.family.distance_matrix(test, train)  # (n_test, n_train)
@@ -134,14 +151,13 @@ class Evaluator:
         """
         k, n = len(seeds), len(self.data.test_tasks)
         latents, diagnostics = jax.device_get(self.latents_of_runs(states.method, keys))
-        policy_params = states.method if self.method.acts_itself else states.iql.actor.params
+        policy_params = self.policy.params(states)
         returns = {}
         for source in self.sources:
             z = jnp.asarray(latents[source])  # (k, n, latent_dim)
 
             def act(obs, _, z=z):
-                obs = jnp.asarray(obs, jnp.float32).reshape(k, n, -1)
-                return np.asarray(self.act(policy_params, obs, z)).reshape(k * n, -1)
+                return self.policy(policy_params, obs, z)
 
             tasks = list(self.data.test_tasks) * k
             exact = self.family.exact_returns(lambda obs, act=act: act(obs, 0), tasks, self.data.noise)
@@ -235,7 +251,7 @@ class OfflineEvaluator:
         self.ids = np.repeat(np.arange(data.train.n_tasks), self.CONTEXTS_PER_TASK)
         self.envs = None if env_family is None else LockstepEnvs(env_family)
         self.episode_length = episode_length
-        self.act = jax.jit(jax.vmap(trainer.method.act if trainer.method.acts_itself else trainer.iql.act))
+        self.policy = RunsPolicy(trainer.method, trainer.iql)
 
     def _contexts(self, data, key, ids):
         contexts = sample_contexts(data, key, ids, self.context_length)
@@ -267,12 +283,8 @@ class OfflineEvaluator:
     def _returns(self, states, z: jax.Array, seeds: list[int]) -> np.ndarray:
         """(runs, contexts): the return of one episode per held-out context in the user's env."""
         k, n = z.shape[:2]
-        policy_params = states.method if self.method.acts_itself else states.iql.actor.params
-
-        def act(obs, _):
-            obs = jnp.asarray(obs, jnp.float32).reshape(k, n, -1)
-            return np.asarray(self.act(policy_params, obs, z)).reshape(k * n, -1)
-
+        policy_params = self.policy.params(states)
+        act = lambda obs, _: self.policy(policy_params, obs, z)  # noqa: E731
         tasks = [self.data.train_tasks[i] for i in self.ids] * k
         episodes = rollout(self.envs.family, tasks, act, noise=None, seed=[s + i for s in seeds for i in range(n)],
                            length=self.episode_length, envs=self.envs)

@@ -187,7 +187,7 @@ class SelfCollector:
         drawn = np.asarray(jax.vmap(lambda key: jax.random.randint(key, (n,), 0, reference.shape[1]))(k_prior))
         prior = np.take_along_axis(reference, drawn[..., None], axis=1)  # (runs, n, latent)
         method_params = self.calibrate(states.method, keys)
-        policy_params = states.method if ev.method.acts_itself else states.iql.actor.params
+        policy_params = ev.policy.params(states)
         test_arrays = jnp.asarray(ev.data.test_task_arrays, jnp.float32)
         obs_dim, action_dim = ev.data.obs_dim, ev.data.action_dim
         record = _Record(runs * n, total, obs_dim, action_dim)
@@ -209,8 +209,7 @@ class SelfCollector:
                     if done >= k and done % k == 0:
                         z = reinfer(done)
                         trajectory.append(np.asarray(z))
-                    obs = jnp.asarray(obs, jnp.float32).reshape(runs, n, -1)
-                    return np.asarray(ev.act(policy_params, obs, z)).reshape(runs * n, -1)
+                    return ev.policy(policy_params, obs, z)
 
                 reset = [s + i + EPISODE_SEED_STRIDE * episode for s in seeds for i in range(n)]
                 episodes = rollout(ev.family, list(ev.data.test_tasks) * runs, act, noise=ev.data.noise, seed=reset,
