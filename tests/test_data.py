@@ -18,7 +18,8 @@ from bati.cli import main
 from bati.data import collect as collect_mod
 from bati.data import store
 from bati.data.batch import TaskData, ensure_family_data, load_family_data, sample_batch, sample_contexts
-from bati.data.collect import collect, make_plan, n_minority
+from bati.data.collect import collect
+from bati.data.plan import make_plan, n_minority
 from bati.envs import get_family
 from bati.io import git_commit
 

@@ -20,6 +20,7 @@ import pytest
 from bati.rl.iql import IQLConfig
 from bati.cli import main
 from bati.envs import FAMILY_NAMES, EPISODE_LENGTH, FamilyUnavailable, TaskError, get_family
+from bati.methods import METHODS
 
 try:
     import pyspiel
@@ -283,36 +284,47 @@ def test_there_is_no_sac_expert_to_train_or_card(capsys):
 
 
 # --- collection, every method, evaluation --------------------------------------------------------
-@needs_openspiel
-@pytest.mark.slow
-def test_every_method_trains_and_evaluates_on_a_small_collection(tmp_path):
+@pytest.fixture(scope="module")
+def small_collection(tmp_path_factory):
+    """A KuhnPoker collection of 2 episodes per opponent (1 context episode) and its FamilyData."""
     from bati.data import load_family_data
     from bati.data.collect import collect
-    from bati.methods import METHODS
-    from bati.train import TrainConfig, train
 
-    result = collect("KuhnPoker", "quick", 0, root=tmp_path, progress=False, n_episodes=2, n_context_episodes=1,
+    root = tmp_path_factory.mktemp("kuhn-data")
+    result = collect("KuhnPoker", "quick", 0, root=root, progress=False, n_episodes=2, n_context_episodes=1,
                      workers=1)
-    manifest = result.manifest
-    assert (manifest["obs_dim"], manifest["action_dim"], manifest["kind"]) == (12, 2, "opponent")
-    data = load_family_data("KuhnPoker", root=tmp_path)
+    return root, result.manifest, load_family_data("KuhnPoker", root=root)
+
+
+@needs_openspiel
+def test_a_small_collection_holds_one_hot_actions_and_the_most_different_tasks(small_collection):
+    _, manifest, data = small_collection
     family = get_family("KuhnPoker")
+    assert (manifest["obs_dim"], manifest["action_dim"], manifest["kind"]) == (12, 2, "opponent")
     actions = np.asarray(data.train.actions)
     assert np.all(actions.sum(-1) == 1) and set(np.unique(actions)) == {0.0, 1.0}  # one-hot
     assert manifest["p_test_most_different"] == [family.most_different(t, data.train_tasks) for t in data.test_tasks]
+
+
+@needs_openspiel
+@pytest.mark.slow
+@pytest.mark.parametrize("method", sorted(METHODS))
+def test_every_method_trains_and_evaluates_on_a_small_collection(method, small_collection, tmp_path):
+    from bati.train import TrainConfig, train
+
+    root, _, data = small_collection
     expert_value = np.mean([kuhn.best_response_value(np.array(t)) for t in data.test_tasks])
-    for method in sorted(METHODS):
-        config = TrainConfig(family="KuhnPoker", method=method, steps=2, log_every=2, eval_every=2,
-                             iql=IQLConfig(hidden_dims=(16, 16)), task_batch=4, batch_size=8, data_root=tmp_path,
-                             episodes_per_task=2, context_episodes=1, out_dir=tmp_path / "runs" / method)
-        summary = train(config, show_progress=False)
-        saved = json.loads((tmp_path / "runs" / method / "config.json").read_text())
-        assert saved["context_length"] == 20 and saved["iql"]["discrete"] is True
-        for source in ("p_test", "p_train"):  # exact expected returns per hand
-            returns = np.array(summary[f"{source}_task_returns"])
-            assert returns.shape == (20,) and np.all(np.abs(returns) <= 2)
-            assert np.all(returns <= [kuhn.best_response_value(np.array(t)) + 1e-3 for t in data.test_tasks])
-        assert summary["reference_returns"]["expert"] == pytest.approx(expert_value, abs=1e-9)
+    config = TrainConfig(family="KuhnPoker", method=method, steps=2, log_every=2, eval_every=2,
+                         iql=IQLConfig(hidden_dims=(16, 16)), task_batch=4, batch_size=8, data_root=root,
+                         episodes_per_task=2, context_episodes=1, out_dir=tmp_path / method)
+    summary = train(config, show_progress=False)
+    saved = json.loads((tmp_path / method / "config.json").read_text())
+    assert saved["context_length"] == 20 and saved["iql"]["discrete"] is True
+    for source in ("p_test", "p_train"):  # exact expected returns per hand
+        returns = np.array(summary[f"{source}_task_returns"])
+        assert returns.shape == (20,) and np.all(np.abs(returns) <= 2)
+        assert np.all(returns <= [kuhn.best_response_value(np.array(t)) + 1e-3 for t in data.test_tasks])
+    assert summary["reference_returns"]["expert"] == pytest.approx(expert_value, abs=1e-9)
 
 
 # --- without the `games` extra ------------------------------------------------------------------

@@ -1,15 +1,5 @@
-"""Build a family's offline datasets (Eq. 9) and test-time context data (Eq. 10).
-
-For the split `train, test = family.split_tasks(seed)` (20 + 20 tasks):
-
-- ``train-i``: the offline dataset of training task i. n_episodes episodes in task i; 10% of them
-  (round(0.1 n), at least 1) are collected by the experts of other training tasks, each drawn
-  uniformly among the other 19, and the rest by the expert for task i (Eq. 9).
-- ``p_test-j``: context data of test task j, collected in task j by the expert of the training
-  task most different from j (Eq. 10). For dynamics families (HopperParam, WalkerParam) 10%
-  (at least 1 episode) come from the expert of the most similar training task instead (App. C.2).
-- ``p_train-j``: context data of test task j collected by the expert of the most similar training
-  task (the "primary" context collector of App. C.2).
+"""Build a family's offline datasets (Eq. 9) and test-time context data (Eq. 10): run the episodes
+of `bati.data.plan`'s plan (who collects which episode) and write the collection.
 
 "The expert for task M" is the family's task-conditioned SAC conditioned on M's parameters
 (design deviation: one expert per family). Experts act stochastically; every episode is run in
@@ -26,20 +16,18 @@ import os
 import shutil
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from bati.data import store
-from bati.envs import FAMILY_NAMES, Task, TaskFamily, TaskSplit, get_family
+from bati.envs import FAMILY_NAMES, TaskFamily, TaskSplit, get_family
+from bati.data.plan import OTHER_FRACTION, PLAN_STREAM, DatasetPlan, Plan, make_plan
 from bati.envs.rollout import LockstepEnvs
 from bati.io import atomic_write_json, check_directory, git_commit, hold_lock
 
-N_TRAIN = 20
-N_TEST = 20
-OTHER_FRACTION = 0.1
 # Episodes per training task and per context dataset. `paper`: the family's own size
 # (FamilyRecord.paper_episodes: App. C Table 3 "Dataset Size" read as transitions PER TASK).
 SCALES: dict[str, dict[str, Any]] = {
@@ -47,7 +35,6 @@ SCALES: dict[str, dict[str, Any]] = {
     "paper": {"n_episodes": "paper_episodes", "n_context_episodes": 20},
 }
 CHUNK = 256  # envs stepped in lockstep (fixed: the stochastic actions depend on it)
-_PLAN_STREAM = 0xDA7A  # separates the plan's random stream from split_tasks(seed)'s
 
 
 def scale_sizes(family: str | TaskFamily, scale: str) -> tuple[int, int]:
@@ -75,73 +62,6 @@ def _from_plugin(name: str) -> bool:
     from bati.envs import PLUGIN_GROUP
 
     return any(entry.name == name for entry in entry_points(group=PLUGIN_GROUP))
-
-
-def n_minority(n: int) -> int:
-    """The "10%" of a mixture: round(0.1 n) episodes, at least 1."""
-    return max(1, round(OTHER_FRACTION * n))
-
-
-# --- the plan: who collects which episode ----------------------------------------------------
-@dataclass
-class DatasetPlan:
-    name: str  # Minari dataset id, e.g. "train-03-v0"
-    split: str  # "train" | "p_test" | "p_train"
-    task_index: int  # index into the split's tasks (train tasks for "train", test tasks otherwise)
-    task: Task
-    collectors: np.ndarray  # (E,) index of the training task whose expert collects each episode
-    reset_seeds: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-
-
-@dataclass
-class Plan:
-    train_tasks: list
-    test_tasks: list
-    datasets: list[DatasetPlan]
-    most_different: list[int]  # per test task: index of the most different training task
-    most_similar: list[int]
-
-    @property
-    def n_episodes(self) -> int:
-        return sum(len(d.collectors) for d in self.datasets)
-
-
-def make_plan(family: TaskFamily, seed: int, n_episodes: int, n_context_episodes: int,
-              tasks: TaskSplit | None = None) -> Plan:
-    """The Eq. 9 / Eq. 10 assignment of collectors to episodes, reproducibly from `seed`; `tasks`
-    picks the training and test tasks (default: 20 + 20 from `family.split_tasks(seed)`)."""
-    if n_episodes < 2:
-        raise ValueError(f"n_episodes={n_episodes}: Eq. 9 needs at least 2 episodes per training task")
-    if n_context_episodes < 1 or (family.kind == "dynamics" and n_context_episodes < 2):
-        raise ValueError(f"n_context_episodes={n_context_episodes} is too small for {family.name}")
-    train, test = (tasks or TaskSplit(N_TRAIN, N_TEST)).draw(family, seed)
-    rng = np.random.default_rng([seed, _PLAN_STREAM])
-    datasets = []
-    for i, task in enumerate(train):
-        n_other = n_minority(n_episodes)
-        others = np.array([j for j in range(len(train)) if j != i])
-        collectors = np.concatenate([np.full(n_episodes - n_other, i), rng.choice(others, n_other)])
-        name = store.dataset_name("train", i)
-        datasets.append(DatasetPlan(name, "train", i, task, rng.permutation(collectors)))
-    most_different = [family.most_different(task, train) for task in test]
-    most_similar = [family.most_similar(task, train) for task in test]
-    for j, task in enumerate(test):
-        collectors = np.full(n_context_episodes, most_different[j])
-        if family.kind == "dynamics":  # keep p_test supported by p_train (App. C.2)
-            collectors[: n_minority(n_context_episodes)] = most_similar[j]
-        name = store.dataset_name("p_test", j)
-        datasets.append(DatasetPlan(name, "p_test", j, task, rng.permutation(collectors)))
-    for j, task in enumerate(test):
-        collectors = np.full(n_context_episodes, most_similar[j])
-        datasets.append(DatasetPlan(store.dataset_name("p_train", j), "p_train", j, task, collectors))
-    # one distinct env reset seed per episode of the collection
-    first = int(rng.integers(0, 2**31 - 1 - 10**8))
-    start = 0
-    for d in datasets:
-        d.collectors = d.collectors.astype(np.int64)
-        d.reset_seeds = first + start + np.arange(len(d.collectors), dtype=np.int64)
-        start += len(d.collectors)
-    return Plan(train, test, datasets, most_different, most_similar)
 
 
 # --- collection -------------------------------------------------------------------------------
@@ -396,7 +316,7 @@ def _rollout_chunk(family: TaskFamily, expert, noise: float, seed: int, chunk: _
     # the expert runs on the CPU in every process (workers never touch an accelerator), so the
     # actions do not depend on where, or in how many processes, the chunk is rolled out
     with jax.default_device(jax.devices("cpu")[0]):
-        base_key = jax.random.fold_in(jax.random.PRNGKey(seed), _PLAN_STREAM)
+        base_key = jax.random.fold_in(jax.random.PRNGKey(seed), PLAN_STREAM)
         chunk_key = jax.random.fold_in(base_key, chunk.index)
         padded = np.zeros((chunk_size, obs.shape[-1]), np.float32)
         for t in range(length):
