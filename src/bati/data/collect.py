@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 
 from bati.data import store
-from bati.envs import FAMILY_NAMES, TaskFamily, TaskSplit, get_family
 from bati.data.plan import OTHER_FRACTION, PLAN_STREAM, DatasetPlan, Plan, make_plan
+from bati.envs import FAMILY_NAMES, TaskFamily, TaskSplit, get_family
 from bati.envs.rollout import LockstepEnvs
 from bati.io import atomic_write_json, check_directory, git_commit, hold_lock
 
