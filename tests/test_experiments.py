@@ -292,8 +292,13 @@ def test_tiny_experiment_end_to_end(tmp_path, name):
                 source = ("self" if probe.self_collect_every is not None else
                           "mixed" if probe.context_mix is not None else "p_test")
                 assert len(saved[f"{source}_returns"]) == 2
+    stale = out / name / "curves-AntDir-quick-eps1-12000steps.png"  # an earlier report's figure of another family
+    stale.parent.mkdir(parents=True, exist_ok=True)
+    stale.write_bytes(b"png")
     report = experiment_report(plan, out / name, command=f"bati experiment {name}")
     assert all(path.exists() for path in report["files"])
+    assert not stale.exists()
+    assert sorted(p.name for p in (out / name).iterdir()) == sorted(p.name for p in report["files"])
     assert report["cells_done"] == len(plan.cells)
     markdown = report["markdown"]
     assert f"Experiment `{name}`" in markdown and f"| {get_spec(name).rows} |" in markdown

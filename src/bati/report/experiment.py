@@ -3,7 +3,8 @@
 Records come from the plan's cells: a run's eval.json (mean of its last 5 evaluations) or, for a
 spec with probes, each probe's JSON (mean of its repeated evaluations of the final checkpoint). A
 table cell is the mean ± std over seeds (std is shown from 2 seeds on), with the paper's value beside
-it. Writes `<out>/report.md`, `<out>/table.csv` and the spec's figures:
+it. Writes `<out>/report.md`, `<out>/table.csv` and the spec's figures (an earlier report's figures
+left in `<out>`, e.g. of families this run did not select, are removed so none is mistaken for this one's):
 
 - curves: p_test and p_train learning curves per setting (the paper's Fig. 4 / 8 layout);
 - vs: the final metric against the table's column key, one panel per family;
@@ -266,5 +267,8 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
     markdown += "".join(f"\n![{name}]({name})\n" for name in figures)
     atomic_write_text(out_dir / "report.md", markdown)
     atomic_write_text(out_dir / "table.csv", _csv_text(("metric",) + CSV_FIELDS, csv_rows))
+    for old in [*out_dir.glob("curves-*.png"), out_dir / "vs.png", out_dir / "tsne.png"]:
+        if old.name not in figures:  # an earlier report's figure (other families or settings): not this one's
+            old.unlink(missing_ok=True)
     files = [out_dir / "report.md", out_dir / "table.csv"] + [out_dir / f for f in figures]
     return {"markdown": markdown, "files": files, "records": records, "cells_done": n_done}
