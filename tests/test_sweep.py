@@ -162,6 +162,36 @@ def test_cli_sweep_ends_with_the_report(tmp_path, local, capsys):
     assert "1 cell(s) run" in capsys.readouterr().out
 
 
+def test_a_second_sweep_on_the_same_record_is_refused_and_writes_nothing(tmp_path, local, monkeypatch):
+    from bati.errors import LockedError
+    from bati.experiments.sweep import record_lock
+
+    out = tmp_path / "sweep"
+    out.mkdir()
+    (out / "sweep.json").write_text("the first sweep's record")
+    monkeypatch.setattr(sweep_module, "run_job", lambda *a, **k: pytest.fail("the refused sweep trained a cell"))
+    with record_lock(out, "sweep.json"):  # another sweep is running on this record
+        with pytest.raises(LockedError, match=r"the sweep record .*sweep\.json is in use by pid \d+"):
+            sweep(Grid(methods=("bati",), settings=TINY), out, show_progress=False)
+        # another record in the same directory (another experiment's) is free
+        with record_lock(out, "main.sweep.json"):
+            pass
+    assert (out / "sweep.json").read_text() == "the first sweep's record"
+    assert sorted(p.name for p in out.iterdir()) == ["sweep.json"]  # the lock went with its holder
+
+
+def test_cli_experiment_on_a_held_record_is_one_line_and_exit_2(tmp_path, capsys):
+    from bati.experiments.sweep import record_lock
+
+    out = tmp_path / "out"
+    out.mkdir()
+    with record_lock(out, "ood-tasks.sweep.json"):
+        code = main(["experiment", "ood-tasks", "--out-dir", str(out), "--data-root", str(tmp_path / "data")])
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and "ood-tasks.sweep.json is in use by pid" in lines[0], lines
+    assert list(out.iterdir()) == [] and not (tmp_path / "data").exists()
+
+
 @pytest.mark.slow
 def test_ray_backend_runs_a_tiny_grid_on_a_local_ray(tmp_path):
     ray = pytest.importorskip("ray")

@@ -444,7 +444,9 @@ class Experiment:
     """Ray cluster address (backend ray; default: a local Ray)."""
 
     def run(self) -> None:
-        from bati.experiments.specs import SPECS, default_out_dir, describe, get_spec, plan_experiment, run_experiment
+        from bati.experiments.specs import (SPECS, default_out_dir, describe, get_spec, plan_experiment,
+                                            run_experiment, status_file)
+        from bati.experiments.sweep import record_lock
         from bati.report.experiment import experiment_report
 
         if self.name == "list":
@@ -464,10 +466,12 @@ class Experiment:
         out = self.out_dir or default_out_dir(self.scale)
         plan = plan_experiment(spec, self.scale, out, seeds=self.seeds, settings=self.settings, methods=self.methods,
                                families=self.families, data_root=self.data_root)
-        result = run_experiment(plan, out, data_root=self.data_root, workers=self.workers, backend=self.backend,
-                                address=self.address, show_progress=console.is_terminal,
-                                on_probe=lambda label: console.print(f"probe {label}") if console.is_terminal else None)
-        report = experiment_report(plan, out / spec.name, command=self.command_line())
+        with record_lock(out, status_file(spec)):  # one process at a time runs and reports this experiment here
+            result = run_experiment(plan, out, data_root=self.data_root, workers=self.workers, backend=self.backend,
+                                    address=self.address, show_progress=console.is_terminal, locked=True,
+                                    on_probe=lambda label: console.print(f"probe {label}") if console.is_terminal
+                                    else None)
+            report = experiment_report(plan, out / spec.name, command=self.command_line())
         sweep = result.sweep
         counts = {s: sweep.count(s) for s in ("done", "skipped", "failed")}
         console.print(Markdown(report["markdown"]))

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from bati.errors import BatiError
 from bati.experiments.probes import Probe, run_probe
-from bati.experiments.sweep import Cell, Grid, SweepResult, expand, sweep
+from bati.experiments.sweep import Cell, Grid, SweepResult, expand, record_lock, sweep
 from bati.train import check_seeds
 
 SCALES = ("quick", "paper")
@@ -316,11 +316,17 @@ class ExperimentResult:
 
 def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
                    backend: str = "local", address: str | None = None, show_progress: bool = True,
-                   on_probe: Callable[[str], None] | None = None) -> ExperimentResult:
-    """Run the plan's cells that are not finished (one sweep), then the probes of the finished ones."""
+                   on_probe: Callable[[str], None] | None = None, locked: bool = False) -> ExperimentResult:
+    """Run the plan's cells that are not finished (one sweep), then the probes of the finished ones,
+    holding the experiment's sweep record all along (a second process on it is refused at once;
+    `locked`: the caller holds `record_lock(out_dir, status_file(plan.spec))` already)."""
+    if not locked:
+        with record_lock(out_dir, status_file(plan.spec)):
+            return run_experiment(plan, out_dir, data_root=data_root, workers=workers, backend=backend,
+                                  address=address, show_progress=show_progress, on_probe=on_probe, locked=True)
     start = time.perf_counter()
     result = sweep(plan.grids, out_dir, data_root=data_root, workers=workers, backend=backend, address=address,
-                   show_progress=show_progress, status_file=status_file(plan.spec))
+                   show_progress=show_progress, status_file=status_file(plan.spec), locked=True)
     done, errors = 0, {}
     for cell in plan.cells:
         if result.status.get(cell.id) not in ("done", "skipped"):

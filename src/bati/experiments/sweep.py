@@ -5,12 +5,14 @@ aside). Cells that differ only in their seed form one job, trained as one progra
 the seeds (`train_seeds`). Layout of a sweep directory:
 
     <out>/sweep.json                               the cells and their status (rewritten atomically)
+    <out>/.sweep.json.lock                         held while a sweep writes that record
     <out>/<Family>/<scale>-eps<eps>-<hash>/<method>-seed<s>/   one run directory per cell
 
 `<hash>` digests the cell's config without method and seed, so the runs of one setting sit side by
 side (what `bati report` tabulates together). A finished cell (its eval.json holds the same config)
 is skipped; a failed job is recorded with its error and the others go on; a rerun after a kill runs
-only what is missing.
+only what is missing. One sweep at a time owns a status record: a second process on the same record is
+refused at once (LockedError), as it would overwrite the first one's statuses with its own.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from bati.errors import BatiError
-from bati.io import atomic_write_json
+from bati.io import atomic_write_json, hold_lock
 from bati.config import NOT_IDENTITY, TrainConfig, apply_settings, differing_settings, digest_view, settable_names
 
 AXES = ("family", "method", "seed", "scale", "noise")
@@ -209,19 +211,33 @@ class SweepResult:
         return sum(s == status for s in self.status.values())
 
 
+def record_lock(out_dir: Path, status_file: str = "sweep.json"):
+    """The lock a sweep holds on its status record (a context manager; LockedError if another process
+    holds it). Callers that do more under the same record, such as an experiment's probes, take it
+    themselves and pass `locked=True` to `sweep`."""
+    out_dir = Path(out_dir)
+    check_out_dir(out_dir)
+    return hold_lock(out_dir / f".{status_file}.lock", f"the sweep record {out_dir / status_file}")
+
+
 def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
           backend: Literal["local", "ray"] = "local", address: str | None = None,
-          show_progress: bool = True, status_file: str = "sweep.json") -> SweepResult:
+          show_progress: bool = True, status_file: str = "sweep.json", locked: bool = False) -> SweepResult:
     """Run every cell of `grid` (or of several grids, e.g. an experiment's parts) that is not finished
     yet; see the module docstring. `status_file` names the status record in `out_dir` (experiments
-    sharing one directory, and so their common cells, keep one each)."""
-    start = time.perf_counter()
+    sharing one directory, and so their common cells, keep one each); `locked`: the caller already
+    holds its `record_lock`."""
     out_dir = Path(out_dir)
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise SweepError(f"workers must be an integer >= 1, got {workers!r}")
     if backend not in ("local", "ray"):
         raise SweepError(f"unknown backend {backend!r}; choose local or ray")
     check_out_dir(out_dir)
+    if not locked:
+        with record_lock(out_dir, status_file):
+            return sweep(grid, out_dir, data_root=data_root, workers=workers, backend=backend, address=address,
+                         show_progress=show_progress, status_file=status_file, locked=True)
+    start = time.perf_counter()
     grids = [grid] if isinstance(grid, Grid) else list(grid)
     if not grids:
         raise SweepError("no grid to sweep")
