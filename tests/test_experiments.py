@@ -250,6 +250,26 @@ def test_probe_refuses_a_missing_run(tmp_path):
         Probe(context_mix=2.0).check()
 
 
+# --- report figures ----------------------------------------------------------------------------
+def test_vs_figure_puts_each_column_at_its_number_and_orders_columns_numerically(tmp_path, monkeypatch):
+    from bati.report import experiment as report_module
+
+    spec = get_spec("noise")
+    records = [{"family": family, "method": "bati", "seed": 0, "family_noise": f"{family} eps={eps:g}",
+                spec.metric: float(10 * eps)}
+               for family, noises in (("AntDir", (1.0, 0.25, 0.0, 0.5)), ("HalfCheetahDir", (0.8, 0.0, 0.4)))
+               for eps in noises]
+    figures = []
+    monkeypatch.setattr(report_module, "save_figure", lambda fig, path, dpi: figures.append(fig))
+    assert report_module.plot_vs(spec, records, spec.metric, tmp_path / "vs.png")
+    (antdir, cheetah) = figures[0].axes[:2]
+    assert list(antdir.lines[0].get_xdata()) == [0.0, 0.25, 0.5, 1.0]  # eps, not a 0 for every text column
+    assert list(antdir.lines[0].get_ydata()) == [0.0, 2.5, 5.0, 10.0]
+    assert list(cheetah.lines[0].get_xdata()) == [0.0, 0.4, 0.8]
+    position = report_module.column_position
+    assert (position("10/30"), position("200"), position("AntDir eps=0.5"), position("final")) == (10, 200, 0.5, None)
+
+
 # --- tiny variants end to end (PointGoal stands in for the MuJoCo families) ---------------------
 TINY = ("steps=10", "eval_every=10", "log_every=10", "batch_size=8", "iql.hidden_dims=[32,32]", "task_batch=2",
         "episodes_per_task=2", "context_episodes=2")

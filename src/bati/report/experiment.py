@@ -73,11 +73,25 @@ def _task_range(config) -> str:
     return f"train {fmt(config.train_task_range)}, test {fmt(config.test_task_range)}"
 
 
+_NUMBER = re.compile(r"\d+(?:\.\d+)?(?:e-?\d+)?")
+
+
 def _sort_key(value: str):
     try:
         return (0, float(value.split("/")[0]), value)
-    except ValueError:  # text: numbers in it compare as numbers ("self10" before "self200")
-        return (1, 0.0, [(0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", value)])
+    except ValueError:  # text: numbers in it compare as numbers ("self10" before "self200", "eps=0.25" before 0.5)
+        parts = re.split(f"({_NUMBER.pattern})", value)  # text, number, text, number, ..., text
+        return (1, 0.0, [(0, float(part), "") if i % 2 else (1, 0, part) for i, part in enumerate(parts)])
+
+
+def column_position(value: str) -> float | None:
+    """A column's place on the vs figure's x axis: the number it starts with ("10/30": 10, "200": 200),
+    else the last number in it ("AntDir eps=0.5": 0.5); None when it holds no number."""
+    try:
+        return float(value.split("/")[0])
+    except ValueError:
+        numbers = _NUMBER.findall(value)
+        return float(numbers[-1]) if numbers else None
 
 
 def table_rows(spec: Spec, records: list[dict], metric: str) -> tuple[list[str], list[str], list[dict]]:
@@ -144,9 +158,9 @@ def plot_vs(spec: Spec, records: list[dict], metric: str, path: Path) -> bool:
     for ax, family in zip(axes[0], families):
         subset = [r for r in records if r["family"] == family]
         rows, columns, entries = table_rows(spec, subset, metric)
-        xs = [_sort_key(c)[1] for c in columns]
+        xs = [column_position(c) for c in columns]
         for row in rows:
-            points = [(x, e) for x, c in zip(xs, columns)
+            points = [(x, e) for x, c in zip(xs, columns) if x is not None
                       for e in entries if e["row"] == row and e["column"] == c and e["n_seeds"]]
             if not points:
                 continue
