@@ -49,6 +49,19 @@ def test_user_set_iql_settings_survive_resolved():
     assert TrainConfig(scale="paper").resolved().iql.hidden_dims == (256, 256)
 
 
+def test_each_scale_sets_its_collection_steps_batch_and_nets():
+    expected = {"quick": ("quick", 3_000, 64, (128, 128)), "cpu": ("paper", 100_000, 64, (128, 128)),
+                "paper": ("paper", 100_000, 256, (256, 256))}
+    for scale, (data, steps, batch, dims) in expected.items():
+        config = TrainConfig(family="AntDir", scale=scale).resolved()
+        assert (config.data_scale, config.steps, config.batch_size, config.iql.hidden_dims) == (data, steps, batch, dims)
+        assert config.out_dir == Path("runs") / "AntDir" / scale / "bati-seed0"
+    # a setting given by hand wins over the scale's default
+    assert TrainConfig(scale="cpu", steps=500, batch_size=32).resolved().steps == 500
+    with pytest.raises(ValueError, match="unknown scale 'huge'; choose one of: quick, cpu, paper"):
+        TrainConfig(scale="huge").resolved()
+
+
 def test_method_sections_take_the_family_default_unless_set():
     assert TrainConfig(family="HopperParam", method="csro").resolved().csro.club_weight == 2.5
     assert TrainConfig(family="PointGoal", method="unicorn").resolved().unicorn.focal_weight == 0.15

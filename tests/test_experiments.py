@@ -38,13 +38,15 @@ def configs(name: str, scale: str = "quick", **kwargs):
 
 # --- the specs expand to the paper's cells -----------------------------------------------------
 def test_main_spec_cells():
-    quick, paper = configs("main"), configs("main", "paper")
-    assert len(quick) == 5 * 9 and len(paper) == 5 * 9 * 5
+    quick, cpu, paper = configs("main"), configs("main", "cpu"), configs("main", "paper")
+    assert len(quick) == 5 * 10 and len(cpu) == 5 * 10 * 3 and len(paper) == 5 * 10 * 5
     assert {c.family for c in paper} == set(MUJOCO) and {c.method for c in paper} == set(MAIN_METHODS)
     assert {c.seed for c in paper} == {0, 1, 2, 3, 4} and {c.seed for c in quick} == {0}
     first = paper[0]  # the paper variant down to its first cell: Table 3's settings
     assert (first.scale, first.steps, first.batch_size, first.task_batch, first.iql.hidden_dims) == \
         ("paper", 100_000, 256, 16, (256, 256))
+    assert {(c.steps, c.batch_size, c.iql.hidden_dims, c.data_scale) for c in cpu} == {(100_000, 64, (128, 128), "paper")}
+    assert {c.seed for c in cpu} == {0, 1, 2}
     assert all(c.noise == get_family(c.family).default_noise for c in quick)
 
 

@@ -18,7 +18,7 @@ from rich.markdown import Markdown
 from rich.markup import escape
 from rich.table import Table
 
-from bati.config import NOT_IDENTITY, TrainConfig
+from bati.config import NOT_IDENTITY, ScaleName, TrainConfig
 from bati.envs.base import TaskSplit
 from bati.errors import BatiWarning
 from bati.experiments.sweep import Grid
@@ -336,7 +336,7 @@ class Run:
     methods: tuple[str, ...] = ("bati", "bati-r", "recon")
     """Any of bati, bati-r, recon, unicorn, csro, focal, dpt, oracle; or `all`."""
     seeds: tuple[int, ...] = (0,)
-    scale: Literal["quick", "paper"] = "quick"
+    scale: ScaleName = "quick"
     steps: int | None = None
     noise: float | None = None
     out_dir: Path | None = None
@@ -424,9 +424,9 @@ class Experiment:
 
     name: tyro.conf.Positional[str]
     """The experiment (main, noise, context-length, ...), or `list`."""
-    scale: Literal["quick", "paper"] = "quick"
+    scale: ScaleName = "quick"
     seeds: tuple[int, ...] | None = None
-    """Training seeds (default: quick 0; paper 0 1 2 3 4)."""
+    """Training seeds (default: quick 0; cpu 0 1 2; paper 0 1 2 3 4)."""
     methods: tuple[str, ...] = ()
     """Keep only these of the experiment's methods (default: all of them)."""
     families: tuple[str, ...] = ()
@@ -450,16 +450,16 @@ class Experiment:
         from bati.report.experiment import experiment_report
 
         if self.name == "list":
-            table = Table(title="bati experiments (cells: runs at the quick / paper scale; probes: quick)")
+            table = Table(title="bati experiments (cells: runs at the quick / cpu / paper scale; probes: quick)")
             table.add_column("name", no_wrap=True)
             table.add_column("paper", no_wrap=True)
-            for column in ("quick", "paper", "probes"):
+            for column in ("quick", "cpu", "paper", "probes"):
                 table.add_column(column, justify="right", no_wrap=True)
             table.add_column("what", ratio=1)
             for spec in SPECS.values():
-                quick, paper = describe(spec, "quick"), describe(spec, "paper")
-                table.add_row(spec.name, quick["paper"], str(quick["cells"]), str(paper["cells"]),
-                              str(quick["probes"]), escape(spec.title))
+                counts = {scale: describe(spec, scale) for scale in ("quick", "cpu", "paper")}
+                table.add_row(spec.name, counts["quick"]["paper"], *(str(c["cells"]) for c in counts.values()),
+                              str(counts["quick"]["probes"]), escape(spec.title))
             console.print(table)
             return
         spec = get_spec(self.name)

@@ -26,7 +26,38 @@ from bati.rl.iql import TABLE3_HIDDEN_DIMS, IQLConfig
 from bati.sinks import check_sinks
 
 QUICK_RL_HIDDEN_DIMS = (128, 128)
-"""IQL's hidden sizes at the quick scale (the paper scale uses Table 3's (256, 256))."""
+"""IQL's hidden sizes at the quick and cpu scales (the paper scale uses Table 3's (256, 256))."""
+
+ScaleName = Literal["quick", "cpu", "paper"]
+
+
+@dataclass(frozen=True)
+class Scale:
+    """A named budget: the collection a run trains on and the defaults of its steps, batch and IQL nets."""
+
+    data: Literal["quick", "paper"]
+    """The collection (`bati data collect --scale`): quick (20 episodes per task) or paper (App. C's sizes)."""
+    steps: int
+    batch_size: int
+    """Transitions per task in a batch (16 tasks per batch at every scale)."""
+    hidden_dims: tuple[int, ...]
+    """IQL's hidden sizes."""
+
+
+SCALES: dict[str, Scale] = {
+    "quick": Scale(data="quick", steps=3_000, batch_size=64, hidden_dims=QUICK_RL_HIDDEN_DIMS),
+    # The paper's data and steps with the quick batch and nets: what a 2-core CPU affords (docs/results.md,
+    # "The cpu scale": the IQL oracle's curves on this data, measured before the choice).
+    "cpu": Scale(data="paper", steps=100_000, batch_size=64, hidden_dims=QUICK_RL_HIDDEN_DIMS),
+    "paper": Scale(data="paper", steps=100_000, batch_size=256, hidden_dims=TABLE3_HIDDEN_DIMS),
+}
+"""The scales, each in one record: `quick` trains in a minute on a laptop, `paper` is App. C / Table 3."""
+
+
+def get_scale(name: str) -> Scale:
+    if name not in SCALES:
+        raise ValueError(f"unknown scale {name!r}; choose one of: {', '.join(SCALES)}")
+    return SCALES[name]
 
 
 @dataclass
@@ -36,13 +67,15 @@ class TrainConfig:
     method: str = "bati"
     """bati, bati-r, bati-auto, recon, unicorn, csro, focal, dpt, oracle or no-context."""
     seed: int = 0
-    scale: Literal["quick", "paper"] = "quick"
+    scale: ScaleName = "quick"
+    """quick (20 episodes per task, 3k steps), cpu (the paper's data and steps, the quick batch and nets) or
+    paper (App. C / Table 3); each names its collection and the defaults below (`SCALES`)."""
     steps: int | None = None
-    """Gradient steps (default: paper 100k, quick 3k)."""
+    """Gradient steps (default: the scale's: quick 3k, cpu and paper 100k)."""
     task_batch: int | None = None
     """Tasks in a batch (default: Table 3's 16, or all training tasks when there are fewer)."""
     batch_size: int | None = None
-    """Transitions per task in a batch (default: paper 256, quick 64)."""
+    """Transitions per task in a batch (default: the scale's: paper 256, quick and cpu 64)."""
     context_length: int | None = None
     """Transitions in a training context (encoder methods) and, by default, in an evaluation context
     (default: the family's, one episode = 200; KuhnPoker 20 = 10 hands)."""
@@ -63,7 +96,7 @@ class TrainConfig:
     learning_rate: float = 3e-4
     """Adam step size of the task-inference method (IQL's is iql.learning_rate)."""
     iql: IQLConfig = field(default_factory=IQLConfig)
-    """The offline RL core (default hidden sizes: quick (128, 128), paper Table 3's (256, 256))."""
+    """The offline RL core (default hidden sizes: quick and cpu (128, 128), paper Table 3's (256, 256))."""
 
     episodes_per_task: int | None = None
     """Episodes per training task in the data (default: the scale's; a collection of other sizes needs
@@ -144,6 +177,11 @@ class TrainConfig:
                          None if self.train_task_range is None else tuple(self.train_task_range),
                          None if self.test_task_range is None else tuple(self.test_task_range))
 
+    @property
+    def data_scale(self) -> str:
+        """The scale of the collection the run trains on (the cpu scale trains on the paper's data)."""
+        return get_scale(self.scale).data
+
     def method_config(self) -> Any:
         """The run's method's hyperparameters (None for a method without any)."""
         key = method_config_key(self.method)
@@ -172,8 +210,7 @@ class TrainConfig:
         family = family_of(name, self.context_length)  # TaskError for an unknown family
         if self.method not in METHODS:
             raise ValueError(f"unknown method {self.method!r}; choose one of: {', '.join(METHODS)}")
-        if self.scale not in ("quick", "paper"):
-            raise ValueError(f"unknown scale {self.scale!r}; choose quick or paper")
+        scale = get_scale(self.scale)
         for setting in ("steps", "task_batch", "batch_size", "context_length", "eval_context_length", "eval_every",
                         "checkpoint_every", "log_every", "episodes_per_task", "context_episodes"):
             value = getattr(self, setting)
@@ -190,9 +227,8 @@ class TrainConfig:
         section = self.method_config()
         if hasattr(section, "check"):
             section.check()
-        quick = self.scale == "quick"
         pick = lambda value, default: default if value is None else value  # noqa: E731
-        steps = pick(self.steps, 3_000 if quick else 100_000)
+        steps = pick(self.steps, scale.steps)
         tenth = max(self.log_every, (steps // 10) // self.log_every * self.log_every)
         eval_every = pick(self.eval_every, tenth)
         out = pick(self.out_dir, Path("runs") / name / self.scale / f"{self.method}-seed{self.seed}")
@@ -207,7 +243,7 @@ class TrainConfig:
             for dataset in self.datasets:
                 dataset_path(dataset)  # a missing one: DatasetNotFoundError before any work
         context_length = pick(self.context_length, family.default_context_length)
-        rl_dims = pick(self.iql.hidden_dims, QUICK_RL_HIDDEN_DIMS if quick else TABLE3_HIDDEN_DIMS)
+        rl_dims = pick(self.iql.hidden_dims, scale.hidden_dims)
         resolved = replace(
             self,
             family=name,
@@ -217,7 +253,7 @@ class TrainConfig:
             train_task_range=None if own else split.train_range,
             test_task_range=None if own else split.test_range,
             steps=steps,
-            batch_size=pick(self.batch_size, 64 if quick else 256),
+            batch_size=pick(self.batch_size, scale.batch_size),
             task_batch=pick(self.task_batch, 16 if own else min(16, split.n_train)),
             eval_every=eval_every,
             context_length=context_length,

@@ -62,7 +62,7 @@ def load_run(run_dir: Path, calibrate: bool = True) -> LoadedRun:
         data = load_own_data(config.datasets, config.task_key, config.context_length, config.held_out,
                              seed=config.data_seed)
     else:
-        data = load_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
+        data = load_family_data(config.family, config.data_scale, config.data_seed, config.noise, config.data_root,
                                 tasks=config.task_split())
     trainer = Trainer(config, data)
     method = trainer.method

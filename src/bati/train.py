@@ -183,7 +183,7 @@ def _check_paths(configs: list[TrainConfig]) -> None:
     c = configs[0]
     if c.datasets:  # a user's own datasets: read, never written
         return
-    collection = store.collection_dir(c.data_root, c.family, c.scale, c.data_seed, c.noise, c.task_split())
+    collection = store.collection_dir(c.data_root, c.family, c.data_scale, c.data_seed, c.noise, c.task_split())
     check_directory(c.data_root, "the data root", writable=not (collection / store.MANIFEST).is_file())
 
 
@@ -229,7 +229,7 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict
             raise ValueError(f"task_batch ({config.task_batch}) must be at most the {len(data.train_tasks)} tasks of "
                              "your datasets: give --task-batch")
     else:
-        data = ensure_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
+        data = ensure_family_data(config.family, config.data_scale, config.data_seed, config.noise, config.data_root,
                                   n_episodes=config.episodes_per_task, n_context_episodes=config.context_episodes,
                                   progress=show_progress, tasks=config.task_split())
     trainer = Trainer(config, data)

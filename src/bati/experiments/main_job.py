@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bati.config import get_scale
 from bati.data import ensure_family_data
 from bati.envs import get_family
 from bati.evaluate import reference_returns
@@ -52,7 +53,7 @@ def run_main_job(config: MainJobConfig, show_progress: bool = True) -> dict:
     methods = resolve_methods(config.methods)
     check_seeds(config.seeds)
     out = config.out_dir or Path("runs") / config.family / config.scale
-    data = ensure_family_data(config.family, config.scale, 0, config.noise, config.data_root, progress=show_progress)
+    data = ensure_family_data(config.family, get_scale(config.scale).data, 0, config.noise, config.data_root, progress=show_progress)
     oracle = reference_returns(data)["expert"]  # the paper's "Oracle (Pre-IQL)"
 
     rows, run_dirs = [], {}

@@ -134,7 +134,7 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
         atomic_write_json(probe_path(run_dir, probe), out)
         return out
     start = time.perf_counter()
-    data = load_family_data(config.family, config.scale, config.data_seed, config.noise, config.data_root,
+    data = load_family_data(config.family, config.data_scale, config.data_seed, config.noise, config.data_root,
                             tasks=config.task_split())
     trainer = Trainer(config, data)
     for name, attribute in (("refine_steps", "refine_steps"), ("latent_samples", "num_latent_samples")):

@@ -23,14 +23,14 @@ from bati.experiments.probes import Probe, run_probe
 from bati.experiments.sweep import Cell, Grid, SweepResult, expand, record_lock, sweep
 from bati.train import check_seeds
 
-SCALES = ("quick", "paper")
+SCALES = ("quick", "cpu", "paper")
 MUJOCO = ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")
-MAIN_METHODS = ("bati", "bati-r", "recon", "focal", "unicorn", "csro", "dpt", "oracle", "no-context")
+MAIN_METHODS = ("bati", "bati-r", "bati-auto", "recon", "focal", "unicorn", "csro", "dpt", "oracle", "no-context")
 # Beyond the paper (docs/methods.md): BATI with Eq. 8's terms weighted by calibration, beside its two fixed forms.
 STATE_TERM_METHODS = ("bati", "bati-r", "bati-auto")
 # The methods of the paper's ablation tables (Tables 1, 2, 5 and Figs. 5, 7), and our reward-only BATI.
 ABLATION_METHODS = ("bati", "bati-r", "csro", "focal", "recon", "unicorn")
-DEFAULT_SEEDS = {"quick": (0,), "paper": (0, 1, 2, 3, 4)}
+DEFAULT_SEEDS = {"quick": (0,), "cpu": (0, 1, 2), "paper": (0, 1, 2, 3, 4)}
 # Self-collected context: main's methods but DPT (its causal transformer reads a repeated window as a sequence).
 SELF_COLLECT_METHODS = ("bati", "bati-r", "recon", "focal", "unicorn", "csro", "oracle", "no-context")
 

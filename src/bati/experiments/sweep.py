@@ -30,7 +30,7 @@ from typing import Any, Literal
 
 from bati.errors import BatiError
 from bati.io import atomic_write_json, hold_lock
-from bati.config import NOT_IDENTITY, TrainConfig, apply_settings, differing_settings, digest_view, settable_names
+from bati.config import NOT_IDENTITY, ScaleName, TrainConfig, apply_settings, differing_settings, digest_view, settable_names
 
 AXES = ("family", "method", "seed", "scale", "noise")
 """Grid axes; every other TrainConfig field can be set for all cells with `overrides`."""
@@ -51,7 +51,7 @@ class Grid:
     seeds: tuple[int, ...] = (0,)
     noises: tuple[float, ...] = ()
     """Per-step noise levels eps (empty: each family's default)."""
-    scales: tuple[Literal["quick", "paper"], ...] = ("quick",)
+    scales: tuple[ScaleName, ...] = ("quick",)
     settings: tuple[str, ...] = ()
     """KEY=VALUE TrainConfig settings for every cell, e.g. `steps=12000 context_length=50
     iql.hidden_dims=[64,64] csro.club_weight=3` (values as JSON)."""
@@ -192,7 +192,7 @@ def prepare_data(cells: list[Cell], progress: bool) -> None:
     workers only read data and never collect the same collection twice."""
     from bati.data.collect import collect
 
-    needed = {(c.family, c.scale, c.data_seed, c.noise, str(c.data_root), c.episodes_per_task, c.context_episodes,
+    needed = {(c.family, c.data_scale, c.data_seed, c.noise, str(c.data_root), c.episodes_per_task, c.context_episodes,
                c.task_split()) for c in (cell.config for cell in cells)}
     for family, scale, seed, noise, root, n_episodes, n_context, tasks in sorted(needed, key=str):
         collect(family, scale, seed, noise, root, n_episodes=n_episodes, n_context_episodes=n_context,
