@@ -105,3 +105,18 @@ def test_run_methods_all_means_every_method():
 
     assert resolve_methods(("all",)) == list(METHODS)
     assert resolve_methods(("recon", "bati", "recon")) == ["recon", "bati"]
+
+
+def test_run_reading_line_names_who_holds_and_who_falls():
+    from bati.experiments.main_job import reading
+
+    references = {"random": -300.0, "expert": -200.0}
+    rows = [{"method": "bati", "p_train_return": [-250.0], "p_test_return": [-245.0]},
+            {"method": "recon", "p_train_return": [-240.0], "p_test_return": [-290.0]}]
+    line = reading(rows, references, 12_000, 1)
+    assert "bati holds (0.50 -> 0.55)" in line and "recon falls (0.60 -> 0.10)" in line
+    assert "best on p_test: bati." in line and "does not show" not in line and "1 seed(s) decide no ranking" in line
+    rows[1]["p_test_return"] = [-210.0]  # Recon best on p_test: the line says the effect does not show
+    line = reading(rows, references, 3_000, 3)
+    assert "best on p_test: recon. The paper's effect (BATI best under p_test contexts) does not show at 3,000 " \
+           "steps and 3 seed(s)" in line and "decide no ranking" not in line

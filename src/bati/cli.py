@@ -334,10 +334,11 @@ class Run:
 
     family: str = "PointGoal"
     methods: tuple[str, ...] = ("bati", "bati-r", "recon")
-    """Any of bati, bati-r, recon, unicorn, csro, focal, dpt, oracle; or `all`."""
+    """Any of bati, bati-r, bati-auto, recon, unicorn, csro, focal, dpt, oracle, no-context; or `all`."""
     seeds: tuple[int, ...] = (0,)
     scale: ScaleName = "quick"
     steps: int | None = None
+    """Gradient steps (default: quick 12,000, where full BATI has converged on PointGoal; else the scale's)."""
     noise: float | None = None
     out_dir: Path | None = None
     """Experiment directory (default runs/<family>/<scale>)."""
@@ -462,6 +463,9 @@ class Experiment:
                               str(counts["quick"]["probes"]), escape(spec.title))
             console.print(table)
             return
+        from bati.report.stats import require_rliable
+
+        require_rliable()  # the report at the end needs it: say so before hours of training
         spec = get_spec(self.name)
         out = self.out_dir or default_out_dir(self.scale)
         plan = plan_experiment(spec, self.scale, out, seeds=self.seeds, settings=self.settings, methods=self.methods,
@@ -530,8 +534,32 @@ class Report:
                       soft_wrap=True)
 
 
+@dataclass
+class Claims:
+    """Each of the paper's claims decided by rliable intervals over the committed runs, at every scale."""
+
+    root: Path = Path(".")
+    """The project directory whose results/ holds the experiments (quick, 12k, cpu, paper)."""
+    out: Path | None = None
+    """Where the page goes (default: ROOT/docs/claims.md)."""
+
+    def run(self) -> None:
+        from bati.experiments.claims import CLAIMS, claims_markdown, decide, overall
+        from bati.io import atomic_write_text
+
+        findings = decide(self.root)
+        out = self.out or self.root / "docs" / "claims.md"
+        command = "bati claims" + (f" --root {self.root}" if self.root != Path(".") else "")
+        atomic_write_text(out, claims_markdown(findings, command))
+        for claim in CLAIMS:
+            verdict, scale = overall(findings, claim)
+            console.print(f"{claim.name} {verdict} (at {scale}): {claim.text}", soft_wrap=True)
+        console.print(f"claims page: {out}")
+
+
 COMMANDS = {"envs": Envs, "experts": Experts, "data": Data, "train": Train, "run": Run, "sweep": Sweep,
-            "experiment": Experiment, "likelihood": Likelihood, "infer": Infer, "report": Report}
+            "experiment": Experiment, "likelihood": Likelihood, "infer": Infer, "report": Report,
+            "claims": Claims}
 
 
 def main(argv: list[str] | None = None) -> int:

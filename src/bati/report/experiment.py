@@ -23,7 +23,9 @@ import numpy as np
 from bati.experiments.probes import probe_path, read_probe
 from bati.experiments.specs import Plan, Spec
 from bati.io import atomic_write_text
-from bati.report.build import _csv_text, group_runs, method_order, plot_group
+from bati.report.build import (_csv_text, group_runs, group_title, method_order, method_rows, plot_group,
+                               plot_profile)
+from bati.report.build import table_markdown as group_table
 from bati.report.curves import save_figure
 from bati.report.runs import RunResult
 from bati.report.tables import METHOD_LABELS
@@ -251,13 +253,22 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
         source = f" (paper: {spec.paper.source})" if spec.paper and metric == spec.metric else ""
         sections.append(table_markdown(spec, metric, rows, columns, entries, f"{metric.replace('_', ' ')}{source}"))
         csv_rows += [{**e, "row": e["row"], "column": e["column"], "metric": metric} for e in entries]
+    groups = group_runs(runs)
+    seeded = [g for g in groups if any(len(g.runs_of(m)) >= 2 for m in g.methods)]
+    if spec.metric == "p_test_return" and seeded:  # rliable's IQM and P(BATI > method), per family and setting
+        sections.append("**Statistics over seeds** (rliable: IQM and probability of improvement with 95% "
+                        "stratified-bootstrap intervals, as `bati report`)\n")
+        sections += [group_table(g, method_rows(g), group_title(g, [])) for g in seeded]
     figures = []
+    if spec.metric == "p_test_return" and plot_profile(runs, out_dir / "profile.png",
+                                                       f"{spec.name}: p_test, every family ({plan.scale} scale)"):
+        figures.append("profile.png")
     if "vs" in spec.figures and plot_vs(spec, records, spec.metric, out_dir / "vs.png"):
         figures.append("vs.png")
     if "tsne" in spec.figures and plot_tsne(plan, out_dir / "tsne.png"):
         figures.append("tsne.png")
     if "curves" in spec.figures:
-        for group in group_runs(runs):
+        for group in groups:
             name = f"curves-{group.slug}.png"
             if plot_group(group, out_dir / name, f"{spec.name}: {group.slug}", "return"):
                 figures.append(name)
@@ -281,7 +292,7 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
     markdown += "".join(f"\n![{name}]({name})\n" for name in figures)
     atomic_write_text(out_dir / "report.md", markdown)
     atomic_write_text(out_dir / "table.csv", _csv_text(("metric",) + CSV_FIELDS, csv_rows))
-    for old in [*out_dir.glob("curves-*.png"), out_dir / "vs.png", out_dir / "tsne.png"]:
+    for old in [*out_dir.glob("curves-*.png"), out_dir / "vs.png", out_dir / "tsne.png", out_dir / "profile.png"]:
         if old.name not in figures:  # an earlier report's figure (other families or settings): not this one's
             old.unlink(missing_ok=True)
     files = [out_dir / "report.md", out_dir / "table.csv"] + [out_dir / f for f in figures]

@@ -1,45 +1,35 @@
-"""rliable-style aggregate statistics in numpy: IQM, stratified bootstrap CIs, probability of improvement.
+"""Aggregate statistics through rliable (Agarwal et al. 2021, "Deep RL at the edge of the statistical
+precipice"): IQM, stratified bootstrap CIs, probability of improvement, performance profiles.
 
-Why not the `rliable` package: rliable 1.2.0 installs but fails to import with this environment's
-pandas 3 (its dependency `arch` 7.2 calls pandas' `deprecate_kwarg` with an older signature). The
-three estimators we need are a few lines each; they follow rliable's definitions (Agarwal et al.
-2021, "Deep RL at the edge of the statistical precipice"):
+Score matrices are (runs, tasks) arrays, rliable's layout; one number per run is a (runs, 1) matrix.
+Here a "task" is whatever a report stratifies by: one family's table has one, the claims page's
+cross-family numbers have one column per family. Every interval is a 95% percentile interval of
+`BOOTSTRAP_REPS` stratified-bootstrap replicates (runs resampled within each column), drawn with
+`seed`: the same scores and seed give the same numbers.
 
-- IQM: the 25% trimmed mean of all scores of a method (runs x tasks flattened), as
-  `scipy.stats.trim_mean(scores, 0.25, axis=None)`: with n scores, int(0.25 n) are cut at each end.
-- Stratified bootstrap: each replicate resamples the runs with replacement independently within
-  every task (stratum), recomputes the statistic; the 95% interval is the 2.5 / 97.5 percentiles of
-  the replicates (rliable's default "percentile" method).
-- Probability of improvement P(X > Y): per task, the Mann-Whitney U statistic normalised to [0, 1]
-  (pairs of runs with X > Y count 1, ties 1/2), averaged over tasks; its interval resamples X's and
-  Y's runs independently within every task.
-
-Everything is deterministic: the bootstrap uses `np.random.default_rng(seed)` (seed 0 by default).
-Score matrices are (runs, tasks) arrays; a single number per run is a (runs, 1) matrix.
+rliable is the `stats` extra (pinned with arch 7.2 and pandas < 3: arch 8 rejects rliable's
+`random_state=None`, pandas 3 breaks arch 7); `require_rliable()` says so in one line before any work.
 """
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
-from scipy.stats import trim_mean
+
+from bati.errors import BatiError
 
 BOOTSTRAP_REPS = 2_000
 CONFIDENCE = 0.95
 
 
-def iqm(scores: np.ndarray) -> float:
-    """Interquartile mean of all entries of a (runs, tasks) score matrix."""
-    return float(trim_mean(np.asarray(scores, dtype=float), proportiontocut=0.25, axis=None))
-
-
-def probability_of_improvement(x: np.ndarray, y: np.ndarray) -> float:
-    """P(X > Y): per task the fraction of run pairs with x > y (ties count 1/2), averaged over tasks."""
-    x, y = _matrix(x), _matrix(y)
-    if x.shape[1] != y.shape[1]:
-        raise ValueError(f"score matrices cover different numbers of tasks: {x.shape[1]} and {y.shape[1]}")
-    per_task = [((xt[:, None] > yt[None, :]) + 0.5 * (xt[:, None] == yt[None, :])).mean()
-                for xt, yt in zip(x.T, y.T)]
-    return float(np.mean(per_task))
+def require_rliable() -> None:
+    """BatiError (one line) unless rliable imports: reports need it."""
+    try:
+        import rliable.library  # noqa: F401
+        import rliable.metrics  # noqa: F401
+    except ImportError as err:
+        raise BatiError(f"reports need rliable ({err}): pip install 'bati[stats]'") from err
 
 
 def _matrix(scores) -> np.ndarray:
@@ -47,29 +37,63 @@ def _matrix(scores) -> np.ndarray:
     return scores[:, None] if scores.ndim == 1 else scores
 
 
-def _resample(scores: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One stratified bootstrap replicate: runs resampled with replacement within each task (column)."""
-    runs, tasks = scores.shape
-    rows = rng.integers(0, runs, size=(runs, tasks))
-    return scores[rows, np.arange(tasks)[None, :]]
+def iqm(scores) -> float:
+    """Interquartile mean of all entries of a (runs, tasks) score matrix (rliable's aggregate_iqm)."""
+    from rliable import metrics
+
+    return float(metrics.aggregate_iqm(_matrix(scores)))
 
 
-def _interval(replicates: list[float]) -> tuple[float, float]:
-    tail = 100 * (1 - CONFIDENCE) / 2
-    low, high = np.percentile(replicates, [tail, 100 - tail])
-    return float(low), float(high)
+def probability_of_improvement(x, y) -> float:
+    """P(X > Y): per task the fraction of run pairs with x > y (ties count 1/2), averaged over tasks."""
+    from rliable import metrics
+
+    x, y = _matrix(x), _matrix(y)
+    if x.shape[1] != y.shape[1]:
+        raise ValueError(f"score matrices cover different numbers of tasks: {x.shape[1]} and {y.shape[1]}")
+    return float(metrics.probability_of_improvement(x, y))
+
+
+def _estimate(scores, func, reps: int, seed: int) -> tuple[float, float, float]:
+    """rliable's point estimate and interval. rliable 1.2's stratified bootstrap draws its indices from
+    numpy's global generator (whatever random_state it is given), so that generator is seeded here and
+    restored afterwards."""
+    from rliable import library
+
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        with warnings.catch_warnings():  # arch 7.2 deprecates the random_state that rliable passes
+            warnings.simplefilter("ignore", FutureWarning)
+            point, interval = library.get_interval_estimates(
+                {"x": scores}, func, reps=reps, confidence_interval_size=CONFIDENCE,
+                random_state=np.random.RandomState(seed))
+    finally:
+        np.random.set_state(saved)
+    low, high = np.asarray(interval["x"]).reshape(2)
+    return float(np.asarray(point["x"]).reshape(())), float(low), float(high)
 
 
 def iqm_interval(scores, reps: int = BOOTSTRAP_REPS, seed: int = 0) -> tuple[float, float, float]:
-    """IQM and its 95% stratified-bootstrap percentile interval: (iqm, low, high)."""
-    scores = _matrix(scores)
-    rng = np.random.default_rng(seed)
-    return (iqm(scores), *_interval([iqm(_resample(scores, rng)) for _ in range(reps)]))
+    """IQM and its 95% stratified-bootstrap interval: (iqm, low, high)."""
+    from rliable import metrics
+
+    return _estimate(_matrix(scores), lambda s: np.array([metrics.aggregate_iqm(s)]), reps, seed)
 
 
 def improvement_interval(x, y, reps: int = BOOTSTRAP_REPS, seed: int = 0) -> tuple[float, float, float]:
-    """P(X > Y) and its 95% stratified-bootstrap interval (X's and Y's runs resampled independently)."""
+    """P(X > Y) and its 95% interval (X's and Y's runs resampled independently within each task)."""
+    from rliable import metrics
+
     x, y = _matrix(x), _matrix(y)
-    rng = np.random.default_rng(seed)
-    reps_ = [probability_of_improvement(_resample(x, rng), _resample(y, rng)) for _ in range(reps)]
-    return (probability_of_improvement(x, y), *_interval(reps_))
+    if x.shape[1] != y.shape[1]:
+        raise ValueError(f"score matrices cover different numbers of tasks: {x.shape[1]} and {y.shape[1]}")
+    return _estimate([x, y], lambda a, b: np.array([metrics.probability_of_improvement(a, b)]), reps, seed)
+
+
+def performance_profile(scores, taus) -> np.ndarray:
+    """The fraction of all (run, task) scores above each tau (rliable's run-score distribution)."""
+    from rliable import library
+
+    scores = _matrix(scores)
+    return np.array([library.run_score_deviation(scores, tau) for tau in np.asarray(taus, dtype=float)])

@@ -1,0 +1,387 @@
+"""The paper's claims, each decided by rliable intervals over the committed runs: `bati claims`.
+
+A claim names the experiment whose cells test it and a test: a function of those cells' records at
+one scale that returns the evidence (numbers with 95% stratified-bootstrap intervals) and a verdict.
+Every scale present under `results/` is read (`SOURCES`): the quick scale, 4x its steps, the cpu
+scale and the paper scale. A ranking is called only with at least `MIN_SEEDS` seeds per method; with
+fewer, the numbers are shown and the verdict is "not tested". The claim's verdict is the one at the
+largest scale that tests it. Scores are normalised returns, (return - random) / (experts - random),
+where the runs record the references (the MuJoCo families and Kuhn poker), else raw returns.
+
+Verdicts: `reproduced` (every interval decides for the paper), `partly` (some do), `not reproduced`
+(none does: the intervals include chance or decide against it), `not tested`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bati.experiments.probes import read_probe
+from bati.experiments.specs import MUJOCO, get_spec, plan_experiment
+from bati.report.runs import RunResult
+from bati.report.stats import improvement_interval, iqm_interval, require_rliable
+
+MIN_SEEDS = 3
+BASELINES = ("focal", "csro", "unicorn", "recon", "dpt")
+"""The paper's baselines (Table 4); the oracle, no-context and our BATI variants are not compared."""
+ALL_SEEDS = (0, 1, 2, 3, 4)
+
+
+@dataclass(frozen=True)
+class Source:
+    """One scale's results: where its experiments ran and the settings they ran with."""
+
+    label: str
+    out_dir: Path
+    scale: str
+    settings: tuple[str, ...] = ()
+
+
+SOURCES = (
+    Source("quick (3k steps, 20 episodes per task)", Path("results/quick/experiments"), "quick"),
+    Source("12k (4x quick steps, quick data)", Path("results/quick/locomotion-12k"), "quick", ("steps=12000",)),
+    Source("cpu (paper data, 100k steps, batch 16 x 64, IQL 128x128)", Path("results/cpu/experiments"), "cpu"),
+    Source("paper (App. C data, 100k steps, batch 16 x 256, IQL 256x256)", Path("results/paper/experiments"), "paper"),
+)
+
+
+@dataclass
+class Record:
+    """One finished cell (or one probe of it): normalised scores where the run has references."""
+
+    method: str
+    family: str
+    noise: float
+    seed: int
+    p_test: float
+    p_train: float
+    p_test_return: float
+    context_length: int | None
+    commit: str | None
+    device: str | None
+    wall_time_s: float
+
+    @property
+    def change(self) -> float:
+        """p_test - p_train: how much the score falls when another policy collected the context."""
+        return self.p_test - self.p_train
+
+
+def gather(spec_name: str, source: Source, root: Path) -> list[Record]:
+    """The records of the experiment's finished cells (and of their probes) at one scale."""
+    spec = get_spec(spec_name)
+    if source.scale not in spec.scales:
+        return []
+    plan = plan_experiment(spec, source.scale, root / source.out_dir, seeds=ALL_SEEDS, settings=source.settings)
+    records = []
+    for cell in plan.cells:
+        c = cell.config
+        try:
+            run = RunResult.from_dict(json.loads((c.out_dir / "eval.json").read_text()), c.out_dir / "eval.json")
+        except (OSError, ValueError, TypeError, AttributeError):
+            continue
+        score = (lambda v: run.normalised(v)) if run.reference_returns else (lambda v: v)  # noqa: E731
+        results = [(run.p_test_return, run.p_train_return, c.eval_context_length, run.commit, run.wall_time_s)]
+        probes = plan.probes.get(cell.id, ())
+        if probes:
+            results = [(p["p_test_return"], p["p_train_return"], p["context_length"], p.get("commit"),
+                        p.get("wall_time_s")) for p in (read_probe(c.out_dir, probe) for probe in probes)
+                       if p is not None and "p_test_return" in p]
+        for p_test, p_train, length, commit, wall in results:
+            records.append(Record(c.method, c.family, c.noise, c.seed, score(p_test), score(p_train), p_test,
+                                  length, commit, run.device, wall or 0.0))
+    return records
+
+
+# --- the tests ----------------------------------------------------------------------------------
+def _scores(records: list[Record], method: str, family: str, key: str = "p_test", **where) -> np.ndarray:
+    return np.array([getattr(r, key) for r in records if r.method == method and r.family == family
+                     and all(getattr(r, k) == v for k, v in where.items()) and math.isfinite(getattr(r, key))])
+
+
+def _seeds_ok(*arrays) -> bool:
+    return all(len(a) >= MIN_SEEDS for a in arrays)
+
+
+def _p(x, y) -> tuple[float, float, float]:
+    return improvement_interval(x, y)
+
+
+def _fmt_p(p: tuple[float, float, float]) -> str:
+    return f"{p[0]:.2f} [{p[1]:.2f}, {p[2]:.2f}]"
+
+
+def _decides(p: tuple[float, float, float]) -> int:
+    """+1 when the interval lies above 1/2 (X better), -1 below (Y better), 0 when it holds 1/2."""
+    return 1 if p[1] > 0.5 else -1 if p[2] < 0.5 else 0
+
+
+def _verdict(decisions: list[int], wanted: int) -> str:
+    if not decisions:
+        return "not tested"
+    hits = sum(d == 1 for d in decisions)
+    return "reproduced" if hits == wanted else "partly" if hits else "not reproduced"
+
+
+def _stratified(records, method, families, key="p_test", **where) -> np.ndarray | None:
+    """A (runs, families) matrix (the first n runs of each family, n the fewest), None without runs."""
+    columns = [_scores(records, method, f, key, **where) for f in families]
+    n = min((len(c) for c in columns), default=0)
+    return np.stack([c[:n] for c in columns], axis=1) if n else None
+
+
+def best_on_p_test(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
+    """C1 / C7: per family, P(BATI > baseline) on p_test for every baseline that ran."""
+    lines, decisions, tested = [], [], 0
+    for family in families:
+        bati = _scores(records, "bati", family)
+        parts, family_decisions = [], []
+        for baseline in BASELINES:
+            other = _scores(records, baseline, family)
+            if not len(other) or not len(bati):
+                continue
+            if not _seeds_ok(bati, other):
+                parts.append(f"{baseline} {other.mean():.2f} ({len(other)} seed(s))")
+                continue
+            p = _p(bati, other)
+            family_decisions.append(_decides(p))
+            parts.append(f"P(BATI > {baseline}) {_fmt_p(p)}")
+        if not parts:
+            continue
+        lead = f"BATI {bati.mean():.2f}" if len(bati) else "BATI: no run"
+        lines.append(f"{family}: {lead} ({len(bati)} seed(s)); " + "; ".join(parts))
+        if family_decisions:
+            tested += 1
+            decisions.append(1 if all(d == 1 for d in family_decisions) else -1 if -1 in family_decisions else 0)
+    if tested < len(families):
+        return lines, "not tested" if not tested else _partial(decisions)
+    return lines, _verdict(decisions, len(families))
+
+
+def _partial(decisions: list[int]) -> str:
+    return "partly" if any(d == 1 for d in decisions) else "not reproduced"
+
+
+def fall_on_p_test(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
+    """C2: a baseline's p_test - p_train (normalised) against BATI's, stratified over the families both ran on."""
+    lines, decisions = [], []
+    for baseline in BASELINES:
+        both = _both(records, ("bati", baseline), families)
+        if not both:
+            continue
+        bati, other = _stratified(records, "bati", both, "change"), _stratified(records, baseline, both, "change")
+        head = f"{baseline} ({len(both)} families): p_test - p_train {other.mean():+.2f} vs BATI {bati.mean():+.2f}"
+        if not _seeds_ok(bati, other):
+            lines.append(head + f" ({min(len(bati), len(other))} seed(s) per family)")
+            continue
+        p = _p(bati, other)
+        decisions.append(_decides(p))
+        train = _p(_stratified(records, "bati", both, "p_train"), _stratified(records, baseline, both, "p_train"))
+        lines.append(head + f"; P(BATI falls less) {_fmt_p(p)}; on p_train P(BATI > {baseline}) {_fmt_p(train)}")
+    return lines, _verdict(decisions, len(decisions))
+
+
+def _both(records: list[Record], methods: tuple[str, ...], families: tuple[str, ...]) -> tuple[str, ...]:
+    """The families on which every one of `methods` has a run."""
+    return tuple(f for f in families if all(len(_scores(records, m, f)) for m in methods))
+
+
+def recon_below(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
+    """C3: P(BATI > Recon) on p_test, stratified over the families that both ran on."""
+    both = _both(records, ("bati", "recon"), families)
+    bati, recon = _stratified(records, "bati", both), _stratified(records, "recon", both)
+    if bati is None or recon is None:
+        return [], "not tested"
+    head = f"families {', '.join(both)}: BATI {bati.mean():.2f}, Recon {recon.mean():.2f}"
+    if not _seeds_ok(bati, recon):
+        return [head + f" ({len(bati)} seed(s))"], "not tested"
+    p = _p(bati, recon)
+    verdict = "reproduced" if _decides(p) == 1 and len(both) == len(families) else \
+        "partly" if _decides(p) == 1 else "not reproduced"
+    return [head + f"; P(BATI > Recon) {_fmt_p(p)}"], verdict
+
+
+def noise_hurts_baselines(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
+    """C4: the change of p_test from eps = 0 to the largest eps, BATI's against each baseline's."""
+    lines, decisions, bati_holds = [], [], []
+    for family in families:
+        levels = sorted({r.noise for r in records if r.family == family})
+        if len(levels) < 2:
+            continue
+        low, high = levels[0], levels[-1]
+
+        def change(method):
+            a = {r.seed: r.p_test for r in records if (r.method, r.family, r.noise) == (method, family, low)}
+            b = {r.seed: r.p_test for r in records if (r.method, r.family, r.noise) == (method, family, high)}
+            return np.array([b[s] - a[s] for s in sorted(a.keys() & b.keys())])
+
+        bati = change("bati")
+        if not len(bati):
+            continue
+        parts = []
+        if _seeds_ok(bati):
+            value, lo, hi = iqm_interval(bati)
+            bati_holds.append(hi >= 0.0)
+            parts.append(f"BATI eps {low:g} -> {high:g}: {value:+.2f} [{lo:+.2f}, {hi:+.2f}]")
+        else:
+            parts.append(f"BATI eps {low:g} -> {high:g}: {bati.mean():+.2f} ({len(bati)} seed(s))")
+        for baseline in BASELINES:
+            other = change(baseline)
+            if not len(other):
+                continue
+            if _seeds_ok(bati, other):
+                p = _p(bati, other)
+                decisions.append(_decides(p))
+                parts.append(f"{baseline} {other.mean():+.2f}, P(BATI changes less) {_fmt_p(p)}")
+            else:
+                parts.append(f"{baseline} {other.mean():+.2f} ({len(other)} seed(s))")
+        lines.append(f"{family}: " + "; ".join(parts))
+    if not decisions:
+        return lines, "not tested"
+    wins = sum(d == 1 for d in decisions)
+    if wins == len(decisions) and all(bati_holds):
+        return lines, "reproduced"
+    return lines, "partly" if wins or any(bati_holds) else "not reproduced"
+
+
+def longer_contexts_help(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
+    """C5: P(return at the longest context > at the shortest) for BATI, beside the baselines."""
+    lengths = sorted({r.context_length for r in records if r.context_length is not None})
+    if len(lengths) < 2:
+        return [], "not tested"
+    short, long = lengths[0], lengths[-1]
+    lines, verdict = [], "not tested"
+    for method in ("bati",) + BASELINES:
+        a = _scores(records, method, families[0], "p_test_return", context_length=short)
+        b = _scores(records, method, families[0], "p_test_return", context_length=long)
+        if not len(a) or not len(b):
+            continue
+        means = " -> ".join(f"{_scores(records, method, families[0], 'p_test_return', context_length=n).mean():.2f}"
+                            for n in lengths)
+        if _seeds_ok(a, b):
+            p = _p(b, a)
+            lines.append(f"{method} C = {' / '.join(map(str, lengths))}: {means}; P(C={long} > C={short}) {_fmt_p(p)}")
+            if method == "bati":
+                verdict = {1: "reproduced", 0: "not reproduced", -1: "not reproduced"}[_decides(p)]
+        else:
+            lines.append(f"{method} C = {' / '.join(map(str, lengths))}: {means} ({len(a)} seed(s))")
+    return lines, verdict
+
+
+def only_bati_positive(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
+    """C6: the IQM p_test return (raw: its sign is the claim) of BATI above 0, the baselines' below."""
+    lines, positive, tested = [], {}, True
+    for method in ("bati",) + BASELINES:
+        returns = _scores(records, method, families[0], "p_test_return")
+        if not len(returns):
+            continue
+        if _seeds_ok(returns):
+            value, lo, hi = iqm_interval(returns)
+            positive[method] = 1 if lo > 0 else -1 if hi < 0 else 0
+            lines.append(f"{method}: IQM {value:.2f} [{lo:.2f}, {hi:.2f}]")
+        else:
+            tested = False
+            lines.append(f"{method}: {returns.mean():.2f} ({len(returns)} seed(s))")
+    if not tested or "bati" not in positive:
+        return lines, "not tested"
+    others = [v for k, v in positive.items() if k != "bati"]
+    if positive["bati"] == 1 and all(v == -1 for v in others):
+        return lines, "reproduced"
+    return lines, "partly" if positive["bati"] == 1 or any(v == -1 for v in others) else "not reproduced"
+
+
+@dataclass(frozen=True)
+class Claim:
+    name: str
+    text: str
+    source: str
+    experiment: str
+    families: tuple[str, ...]
+    test: Callable[[list[Record], tuple[str, ...]], tuple[list[str], str]]
+
+
+CLAIMS = (
+    Claim("C1", "BATI has the best p_test return on all five MuJoCo families", "Table 4, Fig. 4", "main", MUJOCO,
+          best_on_p_test),
+    Claim("C2", "the baselines match BATI on p_train contexts and fall on p_test contexts", "Fig. 8 vs Fig. 4",
+          "main", MUJOCO, fall_on_p_test),
+    Claim("C3", "Recon (BATI's model, an encoder for z) stays below BATI", "Table 4", "main", MUJOCO, recon_below),
+    Claim("C4", "noise in the collecting policy hurts the baselines, not BATI", "Fig. 5, 7", "noise",
+          ("AntDir", "HalfCheetahDir"), noise_hurts_baselines),
+    Claim("C5", "BATI improves with longer contexts (HalfCheetahDir, eps 0.9, trained with C = 50)", "Table 1",
+          "context-length", ("HalfCheetahDir",), longer_contexts_help),
+    Claim("C6", "only BATI has a positive return on out-of-distribution tasks (AntDir)", "Table 2", "ood-tasks",
+          ("AntDir",), only_bati_positive),
+    Claim("C7", "BATI is the best method on Kuhn poker", "Table 6", "kuhn", ("KuhnPoker",), best_on_p_test),
+)
+
+
+@dataclass
+class Finding:
+    claim: Claim
+    source: Source
+    lines: list[str]
+    verdict: str
+    runs: int
+    commits: list[str]
+    devices: list[str]
+    wall_time_s: float
+
+
+def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> list[Finding]:
+    """Every claim at every scale present under `root`."""
+    require_rliable()
+    findings = []
+    for claim in CLAIMS:
+        for source in sources:
+            records = gather(claim.experiment, source, Path(root))
+            records = [r for r in records if r.family in claim.families]
+            if not records:
+                continue
+            lines, verdict = claim.test(records, claim.families)
+            findings.append(Finding(claim, source, lines, verdict, len(records),
+                                    sorted({r.commit[:12] for r in records if r.commit}),
+                                    sorted({r.device for r in records if r.device}),
+                                    sum(r.wall_time_s for r in records)))
+    return findings
+
+
+def overall(findings: list[Finding], claim: Claim) -> tuple[str, str]:
+    """The verdict at the largest scale that tests the claim, and that scale's label."""
+    tested = [f for f in findings if f.claim is claim and f.verdict != "not tested"]
+    if not tested:
+        return "not tested", "-"
+    last = max(tested, key=lambda f: SOURCES.index(f.source) if f.source in SOURCES else -1)
+    return last.verdict, last.source.label.split(" ")[0]
+
+
+def claims_markdown(findings: list[Finding], command: str) -> str:
+    lines = ["# The paper's claims, decided", "",
+             f"Generated by `{command}` from the committed result files under results/ (docs/claims.md is this "
+             "command's output; rerun it after new cells land). Scores: normalised returns where the runs "
+             "record random and expert returns (C6: raw returns, the claim is about their sign). Intervals: "
+             f"95% stratified-bootstrap percentile intervals through rliable (2,000 replicates, seed 0). A "
+             f"ranking is called only with >= {MIN_SEEDS} seeds per method; P(X > Y) decides when its interval "
+             "excludes 1/2. The verdict of a claim is the one at the largest scale that tests it.", "",
+             "| claim | paper | verdict | at scale |", "| --- | --- | --- | --- |"]
+    for claim in CLAIMS:
+        verdict, scale = overall(findings, claim)
+        lines.append(f"| {claim.name}: {claim.text} | {claim.source} | **{verdict}** | {scale} |")
+    for claim in CLAIMS:
+        lines += ["", f"## {claim.name}: {claim.text} ({claim.source}; experiment `{claim.experiment}`)", ""]
+        mine = [f for f in findings if f.claim is claim]
+        if not mine:
+            lines.append("No finished runs at any scale.")
+        for f in mine:
+            lines.append(f"**{f.source.label}**: {f.verdict} ({f.runs} run(s); commit(s) {', '.join(f.commits) or '?'}; "
+                         f"device(s) {', '.join(f.devices) or '?'}; summed wall time {f.wall_time_s / 60:.1f} min)")
+            lines.append("")
+            lines += [f"- {line}" for line in f.lines] or ["- (no comparison possible)"]
+            lines.append("")
+    return "\n".join(lines).rstrip() + "\n"

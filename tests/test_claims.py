@@ -1,0 +1,93 @@
+"""`bati claims`: each claim's verdict from result files laid out as the experiments write them."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from bati.cli import main
+from bati.experiments.claims import CLAIMS, SOURCES, decide, overall
+from bati.experiments.specs import get_spec, plan_experiment
+
+CPU = next(s for s in SOURCES if s.scale == "cpu")
+QUICK = SOURCES[0]
+
+
+def write_cells(root: Path, source, experiment: str, scores: dict, seeds=(0, 1, 2)) -> None:
+    """An eval.json in each planned cell of `experiment`: scores[(method, family)] = (p_train, p_test) per
+    seed (random 0 and experts 1, so the normalised score is the return)."""
+    plan = plan_experiment(get_spec(experiment), source.scale, root / source.out_dir, seeds=seeds,
+                           settings=source.settings)
+    for cell in plan.cells:
+        c = cell.config
+        if (c.method, c.family) not in scores:
+            continue
+        p_train, p_test = scores[(c.method, c.family)]
+        c.out_dir.mkdir(parents=True, exist_ok=True)
+        record = {"family": c.family, "method": c.method, "seed": c.seed, "p_train_return": p_train[c.seed],
+                  "p_test_return": p_test[c.seed], "reference_returns": {"random": 0.0, "expert": 1.0},
+                  "commit": "abc", "device": "cpu", "wall_time_s": 60.0}
+        (c.out_dir / "eval.json").write_text(json.dumps(record))
+
+
+FAMILIES = ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")
+HIGH, LOW = (0.80, 0.85, 0.90), (0.20, 0.25, 0.30)
+
+
+def verdicts(root: Path) -> dict[str, tuple[str, str]]:
+    findings = decide(root)
+    return {claim.name: overall(findings, claim) for claim in CLAIMS}
+
+
+def test_bati_above_every_baseline_everywhere_reproduces_c1_to_c3(tmp_path):
+    scores = {("bati", f): (HIGH, HIGH) for f in FAMILIES}
+    scores |= {(m, f): (HIGH, LOW) for f in FAMILIES for m in ("focal", "csro", "unicorn", "recon")}
+    write_cells(tmp_path, CPU, "main", scores)
+    found = verdicts(tmp_path)
+    assert found["C1"] == ("reproduced", "cpu") and found["C3"] == ("reproduced", "cpu")
+    assert found["C2"] == ("reproduced", "cpu")  # same p_train, baselines fall on p_test
+    assert found["C4"] == ("not tested", "-")
+
+
+def test_one_family_lost_is_partly_and_a_reversal_is_not_reproduced(tmp_path):
+    scores = {("bati", f): (HIGH, HIGH) for f in FAMILIES}
+    scores |= {(m, f): (HIGH, LOW) for f in FAMILIES for m in ("focal", "recon")}
+    scores[("focal", "AntDir")] = (HIGH, (0.95, 0.96, 0.97))  # FOCAL beats BATI on one family
+    write_cells(tmp_path, CPU, "main", scores)
+    assert verdicts(tmp_path)["C1"][0] == "partly"
+    reversed_ = {("bati", f): (HIGH, LOW) for f in FAMILIES} | {("recon", f): (HIGH, HIGH) for f in FAMILIES}
+    write_cells(tmp_path / "r", CPU, "main", reversed_)
+    assert verdicts(tmp_path / "r")["C3"][0] == "not reproduced"
+
+
+def test_fewer_than_three_seeds_call_no_ranking(tmp_path):
+    scores = {("bati", f): (HIGH, HIGH) for f in FAMILIES} | {("recon", f): (HIGH, LOW) for f in FAMILIES}
+    write_cells(tmp_path, QUICK, "main", scores, seeds=(0,))
+    findings = decide(tmp_path)
+    c3 = next(f for f in findings if f.claim.name == "C3")
+    assert c3.verdict == "not tested" and "(1 seed(s))" in c3.lines[0]
+
+
+def test_overlapping_intervals_do_not_decide(tmp_path):
+    same = (0.5, 0.6, 0.7)
+    write_cells(tmp_path, CPU, "main", {("bati", f): (same, same) for f in FAMILIES}
+                | {("recon", f): (same, same) for f in FAMILIES})
+    c3 = next(f for f in decide(tmp_path) if f.claim.name == "C3")
+    assert c3.verdict == "not reproduced" and "P(BATI > Recon) 0.50" in c3.lines[0]
+
+
+def test_cli_writes_the_page(tmp_path, capsys):
+    write_cells(tmp_path, CPU, "main", {("bati", f): (HIGH, HIGH) for f in FAMILIES}
+                | {("recon", f): (HIGH, LOW) for f in FAMILIES})
+    out = tmp_path / "claims.md"
+    assert main(["claims", "--root", str(tmp_path), "--out", str(out)]) == 0
+    page = out.read_text()
+    assert "| C3: Recon (BATI's model, an encoder for z) stays below BATI | Table 4 | **reproduced** | cpu |" in page
+    assert "C3 reproduced (at cpu)" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("claim", [c.name for c in CLAIMS])
+def test_every_claim_is_not_tested_without_results(tmp_path, claim):
+    assert verdicts(tmp_path)[claim] == ("not tested", "-")
