@@ -111,11 +111,12 @@ def _fit(method, steps=300, seed=0):
     return params, losses
 
 
-@pytest.mark.parametrize("name", ["bati", "recon", "unicorn", "focal", "csro"])
+@pytest.mark.parametrize("name", ["bati", "recon", "unicorn", "focal", "csro", "er-trl"])
 def test_loss_goes_down_and_inference_finds_the_task(name):
     method = make_method(name, SPEC)
     params, losses = _fit(method)
-    assert np.mean(losses[-20:]) < np.mean(losses[:20]) - 0.5
+    if name != "er-trl":  # ER-TRL's loss holds an adversarial game and an entropy it raises: no descent to check
+        assert np.mean(losses[-20:]) < np.mean(losses[:20]) - 0.5
     # Reference latents from each task's own contexts; inferred latents of fresh contexts must be nearest
     # to their own task's reference.
     reference = method.infer(params, toy_transitions(np.arange(4), n=100, seed=5), jax.random.PRNGKey(1))
@@ -416,3 +417,42 @@ def test_off_policy_contexts_come_from_episodes_of_other_experts():
         np.testing.assert_array_equal(np.asarray(ctx["rewards"]) - first[:, None], np.arange(6)[None].repeat(3, 0))
     with pytest.raises(ValueError, match="off-policy context holds 1 to 10"):
         sample_off_policy_contexts(data, jax.random.PRNGKey(0), 11)
+
+
+def test_gaussian_entropy_matches_hand_computation_and_the_known_answer():
+    from bati.methods.er_trl import gaussian_entropy
+
+    corners = jnp.array([[[0.0, 0.0], [2.0, 0.0], [0.0, 2.0], [2.0, 2.0]]])  # covariance 4/3 I (unbiased)
+    expected = 0.5 * (2 * (1 + np.log(2 * np.pi)) + np.log((4 / 3) ** 2))
+    np.testing.assert_allclose(gaussian_entropy(corners, epsilon=0.0), [expected], rtol=1e-5)
+    # samples of N(0, sigma^2 I): the entropy of the distribution, 1/2 log((2 pi e sigma^2)^A), per row
+    sigma = np.array([0.1, 1.0, 3.0])
+    samples = sigma[:, None, None] * jax.random.normal(jax.random.PRNGKey(0), (3, 20_000, 2))
+    np.testing.assert_allclose(gaussian_entropy(samples), np.log(2 * np.pi * np.e * sigma ** 2), atol=0.03)
+
+
+def test_er_trl_gan_losses_at_an_undecided_discriminator():
+    from bati.methods.er_trl import discriminator_loss, generator_loss
+
+    zeros = jnp.zeros((4, 8))
+    np.testing.assert_allclose(discriminator_loss(zeros, zeros), 2 * np.log(2), rtol=1e-6)
+    np.testing.assert_allclose(generator_loss(zeros), np.log(2), rtol=1e-6)
+    assert float(discriminator_loss(jnp.full((2,), 20.0), jnp.full((2,), -20.0))) < 1e-6  # a perfect judge
+
+
+def test_er_trl_entropy_term_reaches_the_encoder_only():
+    from bati.methods.er_trl import ERTRLConfig
+
+    batch = _baseline_batch()
+
+    def grads(weight):
+        method = make_method("er-trl", SPEC, ERTRLConfig(entropy_weight=weight))
+        params = method.init(jax.random.PRNGKey(0))
+        return jax.grad(lambda p: method.loss(p, batch, jax.random.PRNGKey(1))[0])(params)
+
+    small, large = grads(0.0), grads(100.0)
+    for name in ("generator", "discriminator"):  # the GAN's gradients are its own losses' alone
+        jax.tree_util.tree_map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6),
+                               small[name], large[name])
+    leaves = zip(jax.tree_util.tree_leaves(small["encoder"]), jax.tree_util.tree_leaves(large["encoder"]))
+    assert any(not np.allclose(a, b) for a, b in leaves)

@@ -20,6 +20,7 @@ from bati.envs import TaskSplit
 from bati.methods.bati import BATIConfig
 from bati.methods.csro import CSROConfig
 from bati.methods.dpt import DPTConfig
+from bati.methods.er_trl import ERTRLConfig
 from bati.methods.focal import FOCALConfig
 from bati.methods.unicorn import UNICORNConfig
 from bati.rl.iql import TABLE3_HIDDEN_DIMS, IQLConfig
@@ -65,7 +66,7 @@ class TrainConfig:
     family: str | None = None
     """The task family (default: PointGoal; with --datasets: `own`, your data)."""
     method: str = "bati"
-    """bati, bati-r, bati-auto, recon, unicorn, csro, focal, dpt, oracle or no-context."""
+    """bati, bati-r, bati-auto, recon, unicorn, csro, focal, er-trl, dpt, oracle or no-context."""
     seed: int = 0
     scale: ScaleName = "quick"
     """quick (20 episodes per task, 3k steps), cpu (the paper's data and steps, the quick batch and nets) or
@@ -133,6 +134,8 @@ class TrainConfig:
     unicorn: UNICORNConfig = field(default_factory=UNICORNConfig)
     csro: CSROConfig = field(default_factory=CSROConfig)
     dpt: DPTConfig = field(default_factory=DPTConfig)
+    ertrl: ERTRLConfig = field(default_factory=ERTRLConfig)
+    """er-trl (FOCAL's settings plus its behaviour-entropy term)."""
 
     # --- reading and writing ------------------------------------------------------------------
     @classmethod
@@ -324,7 +327,7 @@ def family_of(name: str, context_length: int | None = None):
 def method_sections() -> dict[str, type]:
     """TrainConfig's per-method fields: name -> the Config dataclass it holds."""
     return {"bati": BATIConfig, "focal": FOCALConfig, "unicorn": UNICORNConfig, "csro": CSROConfig,
-            "dpt": DPTConfig}
+            "dpt": DPTConfig, "ertrl": ERTRLConfig}
 
 
 def method_config_key(method: str) -> str | None:

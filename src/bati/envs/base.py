@@ -73,6 +73,9 @@ class FamilyRecord:
     """Table 3: UNICORN's weight of the FOCAL term."""
     club_weight: float = 1.0
     """Table 3: CSRO's weight of the CLUB term."""
+    entropy_weight: float = 5.0
+    """ER-TRL's weight of the behaviour-entropy term (its code's `mir_loss_weight`: AntDir, Hopper and Walker
+    5.0, HalfCheetahVel 2.5)."""
     version: int = 1
     """The env's version: bumped when its dynamics, rewards or tasks change, so that collections and
     experts made for another version are refused (their manifest / expert.json records it)."""

@@ -6,6 +6,7 @@ from bati.methods.base import MethodSpec, TaskInference
 from bati.methods.bati import BATI, BATIAuto, BATIReward
 from bati.methods.csro import CSRO
 from bati.methods.dpt import DPT
+from bati.methods.er_trl import ERTRL
 from bati.methods.focal import FOCAL
 from bati.methods.no_context import NoContext
 from bati.methods.oracle import Oracle
@@ -13,7 +14,7 @@ from bati.methods.recon import Recon
 from bati.methods.unicorn import UNICORN
 
 METHODS = {"bati": BATI, "bati-r": BATIReward, "bati-auto": BATIAuto, "recon": Recon, "unicorn": UNICORN, "csro": CSRO,
-           "focal": FOCAL, "dpt": DPT, "oracle": Oracle, "no-context": NoContext}
+           "focal": FOCAL, "er-trl": ERTRL, "dpt": DPT, "oracle": Oracle, "no-context": NoContext}
 
 
 def make_method(name: str, spec: MethodSpec, config=None) -> TaskInference:
