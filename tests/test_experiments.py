@@ -20,6 +20,7 @@ from bati.experiments.probes import Probe, ProbeError, read_probe
 from bati.experiments.specs import (
     ABLATION_METHODS,
     MAIN_METHODS,
+    NOISE_METHODS,
     MUJOCO,
     SPECS,
     ExperimentError,
@@ -39,7 +40,7 @@ def configs(name: str, scale: str = "quick", **kwargs):
 # --- the specs expand to the paper's cells -----------------------------------------------------
 def test_main_spec_cells():
     quick, cpu, paper = configs("main"), configs("main", "cpu"), configs("main", "paper")
-    assert len(quick) == 5 * 10 and len(cpu) == 5 * 10 * 3 and len(paper) == 5 * 10 * 5
+    assert len(quick) == 5 * 11 and len(cpu) == 5 * 11 * 3 and len(paper) == 5 * 11 * 5
     assert {c.family for c in paper} == set(MUJOCO) and {c.method for c in paper} == set(MAIN_METHODS)
     assert {c.seed for c in paper} == {0, 1, 2, 3, 4} and {c.seed for c in quick} == {0}
     first = paper[0]  # the paper variant down to its first cell: Table 3's settings
@@ -57,7 +58,7 @@ def test_noise_spec_cells():
                       ("HalfCheetahDir", 0.4), ("HalfCheetahDir", 0.8)}
     for family in ("AntDir", "HalfCheetahDir"):  # 0 and the family's default among three levels
         assert {0.0, get_family(family).default_noise} <= {n for f, n in levels if f == family}
-    assert len(cells) == 6 * len(ABLATION_METHODS)
+    assert len(cells) == 6 * len(NOISE_METHODS) and "er-trl" in NOISE_METHODS
 
 
 def test_context_length_spec_cells_and_probes():
