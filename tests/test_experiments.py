@@ -28,7 +28,7 @@ from bati.experiments.specs import (
     plan_experiment,
     run_experiment,
 )
-from bati.report.experiment import experiment_report
+from bati.experiments.report import experiment_report
 
 OUT = Path("/nonexistent-out")  # planning writes nothing: any path will do
 
@@ -255,7 +255,7 @@ def test_probe_refuses_a_missing_run(tmp_path):
 
 # --- report figures ----------------------------------------------------------------------------
 def test_vs_figure_puts_each_column_at_its_number_and_orders_columns_numerically(tmp_path, monkeypatch):
-    from bati.report import experiment as report_module
+    from bati.experiments import report as report_module
 
     spec = get_spec("noise")
     records = [{"family": family, "method": "bati", "seed": 0, "family_noise": f"{family} eps={eps:g}",

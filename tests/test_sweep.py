@@ -207,3 +207,16 @@ def test_ray_backend_runs_a_tiny_grid_on_a_local_ray(tmp_path):
     assert result.count("done") == 2, result.errors
     for cell in expand(grid, tmp_path / "sweep", root):
         assert json.loads((cell.config.out_dir / "eval.json").read_text())["steps"] == 10
+
+
+def test_cli_experiment_report_only_trains_nothing_and_covers_every_cell(tmp_path, monkeypatch, capsys):
+    from bati.experiments.specs import get_spec, plan_experiment
+
+    monkeypatch.setattr(sweep_module, "run_job", lambda *a, **k: pytest.fail("--report-only trained a cell"))
+    out, data = tmp_path / "out", tmp_path / "data"
+    args = ["experiment", "ood-tasks", "--methods", "bati", "--report-only", "--out-dir", str(out), "--data-root", str(data)]
+    assert main(args) == 0
+    report = (out / "ood-tasks" / "report.md").read_text()
+    n_cells = len(plan_experiment(get_spec("ood-tasks"), "quick", out).cells)  # every method, not only bati
+    assert f"cells finished: 0 of {n_cells}" in report and "--methods" not in report
+    assert "nothing trained" in capsys.readouterr().out and not data.exists()

@@ -443,12 +443,14 @@ class Experiment:
     backend: Literal["local", "ray"] = "local"
     address: str | None = None
     """Ray cluster address (backend ray; default: a local Ray)."""
+    report_only: bool = False
+    """Train nothing: write the report from the cells already finished."""
 
     def run(self) -> None:
         from bati.experiments.specs import (SPECS, default_out_dir, describe, get_spec, plan_experiment,
                                             run_experiment, status_file)
         from bati.experiments.sweep import record_lock
-        from bati.report.experiment import experiment_report
+        from bati.experiments.report import experiment_report
 
         if self.name == "list":
             table = Table(title="bati experiments (cells: runs at the quick / cpu / paper scale; probes: quick)")
@@ -470,12 +472,20 @@ class Experiment:
         out = self.out_dir or default_out_dir(self.scale)
         plan = plan_experiment(spec, self.scale, out, seeds=self.seeds, settings=self.settings, methods=self.methods,
                                families=self.families, data_root=self.data_root)
+        # The report covers every cell of the experiment at this scale, finished by this command or another.
+        whole = plan_experiment(spec, self.scale, out, seeds=self.seeds, settings=self.settings,
+                                data_root=self.data_root)
         with record_lock(out, status_file(spec)):  # one process at a time runs and reports this experiment here
+            if self.report_only:
+                report = experiment_report(whole, out / spec.name, command=self.command_line(whole=True))
+                console.print(Markdown(report["markdown"]))
+                console.print(f"experiment {spec.name}: report in {out / spec.name}/ (nothing trained)", soft_wrap=True)
+                return
             result = run_experiment(plan, out, data_root=self.data_root, workers=self.workers, backend=self.backend,
                                     address=self.address, show_progress=console.is_terminal, locked=True,
                                     on_probe=lambda label: console.print(f"probe {label}") if console.is_terminal
                                     else None)
-            report = experiment_report(plan, out / spec.name, command=self.command_line())
+            report = experiment_report(whole, out / spec.name, command=self.command_line(whole=True))
         sweep = result.sweep
         counts = {s: sweep.count(s) for s in ("done", "skipped", "failed")}
         console.print(Markdown(report["markdown"]))
@@ -488,10 +498,11 @@ class Experiment:
             raise SweepFailed(f"{counts['failed']} cell(s) and {len(result.probe_errors)} probe(s) failed; rerun the "
                               "same command to retry them")
 
-    def command_line(self) -> str:
-        """The command that reproduces this experiment (options that differ from the defaults)."""
+    def command_line(self, whole: bool = False) -> str:
+        """The command that reproduces this experiment (options that differ from the defaults; `whole`:
+        all of its methods and families, as its report covers them)."""
         parts = ["bati experiment", self.name, "--scale", self.scale]
-        for name in ("seeds", "methods", "families", "settings"):
+        for name in ("seeds", "settings") if whole else ("seeds", "methods", "families", "settings"):
             value = getattr(self, name)
             if value:
                 parts += [f"--{name}", *map(str, value)]

@@ -88,11 +88,6 @@ class SelfCollected:
     episodes: int
     context_length: int
 
-    @property
-    def final_errors(self) -> np.ndarray:
-        """(runs, n_test): inference error of the final latent."""
-        return self.inference_errors[:, -1]
-
     def summary(self, prefix: str = "self") -> dict:
         """Means over runs and test tasks (and stds over runs) for a result file; see docs/methods.md."""
         per_run = self.returns.mean(axis=1)  # (runs, episodes)

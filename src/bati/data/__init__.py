@@ -3,7 +3,8 @@
 >>> from bati.data import ensure_family_data, sample_batch, sample_contexts
 >>> data = ensure_family_data("PointGoal", scale="quick", seed=0)
 
-Names are imported lazily, so `bati data collect` on a cached collection does not load JAX.
+Names are imported lazily: `import bati.data` and the collection code load neither JAX nor MuJoCo
+(the `bati` CLI does load JAX, through its configs).
 """
 
 from __future__ import annotations

@@ -52,13 +52,11 @@ from bati.envs.base import EPISODE_LENGTH, FamilyRecord, TaskEnvMixin, TaskError
 
 HANDS_PER_EPISODE = EPISODE_LENGTH // 2
 PASS, BET = 0, 1
-CARDS = ("J", "Q", "K")
 INFO_STATE_DIM = 11  # OpenSpiel's kuhn_poker information-state tensor (2 players)
 OBS_DIM = INFO_STATE_DIM + 1  # + the `hand over` flag
 HAND_OVER = INFO_STATE_DIM  # index of the flag
 CARD_SLICE = slice(2, 5)  # card one-hot in the tensor
 SECOND_DECISION_BIT = 8  # round 2 "bet" bit: player 2 bet after player 1 passed
-TASK_NAMES = ("bet_J", "bet_Q", "bet_K", "call_J", "call_Q", "call_K")
 
 # WIN[c, d] = +1 if card c beats card d, -1 if it loses (0 on the diagonal, never dealt)
 WIN = np.sign(np.arange(3)[:, None] - np.arange(3)[None, :]).astype(np.float64)

@@ -5,7 +5,7 @@ of the final checkpoints under other test-time settings, e.g. Table 1's context 
 it reports (rows x columns of a record key) and the paper's own numbers for that table, typed once
 here with the table or figure they come from. `run_experiment` expands the spec, runs what is not
 finished yet (a `bati sweep` of all its cells: resumable, idempotent) and its probes; the report is
-`bati.report.experiment`. Experiments share one results directory per scale (`default_out_dir`):
+`bati.experiments.report`. Experiments share one results directory per scale (`default_out_dir`):
 a cell two specs have in common is trained once.
 """
 

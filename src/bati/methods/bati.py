@@ -1,16 +1,16 @@
 """BATI: Behavior-agnostic Task Inference (Sec. 4).
 
 Training: a table of Gaussian task embeddings, one per training task (learnable mean, fixed
-log-variance -4), and the dynamics model are fit jointly by the reconstruction NLL (Eq. 6-7);
-the batch's z is a reparameterised sample of its own task's entry.
+log-variance `embedding_log_var`, -4 by default), and the dynamics model are fit jointly by the
+reconstruction NLL (Eq. 6-7); the batch's z is a reparameterised sample of its own task's entry.
 Test time (Eq. 8): sample N latents from the table (pick an entry, sample its Gaussian) and
 keep the one under which the context's transitions are most likely. Only p(r, s' | s, a, z) is
 used, so who collected the context does not matter.
 
 Refined inference (ours, off by default: `refine_steps` = 0): from the arg-min sample, `refine_steps`
 Adam steps on the negative log posterior of z: the context's NLL (C transitions, each Eq. 7 / 2) plus
-the negative log-density of the table's Gaussian mixture (each entry's N(mean, exp(-4))) as the prior,
-which keeps z where the table has support while letting it move between entries (a task between
+the negative log-density of the table's Gaussian mixture (each entry's N(mean, exp(embedding_log_var)))
+as the prior, which keeps z where the table has support while letting it move between entries (a task between
 training tasks) as far as the context's evidence says. Probes set it on finished runs (`bati experiment refined-inference`).
 """
 
@@ -69,7 +69,7 @@ class BATI(TaskInference):
         return params["table"]
 
     def sample_task_latents(self, params, task_ids, key):
-        """z ~ N(table[task], exp(-4)) with the reparameterisation trick."""
+        """z ~ N(table[task], exp(embedding_log_var)) with the reparameterisation trick."""
         mean = params["table"][task_ids]
         return mean + self.std * jax.random.normal(key, mean.shape)
 

@@ -59,7 +59,8 @@ def upgrade_checkpoint(raw: dict, step: int) -> dict:
 
 
 def expectile_loss(diff: jax.Array, expectile: float) -> jax.Array:
-    """Asymmetric L2: |tau - 1(diff < 0)| * diff^2, with diff = Q - V."""
+    """Asymmetric L2: |expectile - 1(diff < 0)| * diff^2, with diff = Q - V (IQL's expectile, often called tau;
+    IQLConfig.tau is the Polyak rate of the target critic)."""
     weight = jnp.where(diff > 0, expectile, 1 - expectile)
     return weight * diff**2
 
