@@ -12,8 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bati.envs import FamilyRecord, TaskFamily, register_family
-from bati.envs.base import TaskEnvMixin, scalar_task
+from bati.envs import FamilyRecord, TaskEnvMixin, TaskFamily, register_family, scalar_task
 from bati.experts import Expert, register_expert
 
 STEP_SIZE = 0.1

@@ -4,6 +4,7 @@ collect -> train -> evaluate with every method, with one env file, one record an
 from __future__ import annotations
 
 import json
+import textwrap
 
 import gymnasium as gym
 import numpy as np
@@ -67,3 +68,68 @@ def test_every_method_runs_collect_train_evaluate_on_a_family_defined_outside_sr
         assert saved["family"] == "LineGoal" and saved["context_length"] == 50  # the record's context length
     # Table 3-style settings come from the record: the latent of BATI's table is the record's latent_dim
     assert config.resolved().family == "LineGoal" and line_goal.record.latent_dim == 2
+
+
+def test_the_transferable_experiments_plan_a_registered_family(line_goal, tmp_path):
+    from bati.experiments.specs import ExperimentError, get_spec, plan_experiment
+
+    def plan(name):
+        return plan_experiment(get_spec(name), "quick", tmp_path, families=("LineGoal",))
+
+    assert {c.config.family for c in plan("main").cells} == {"LineGoal"}
+    eps = line_goal.default_noise
+    assert sorted({c.config.noise for c in plan("noise").cells}) == [0.0, eps / 2, eps]
+    assert sorted({(c.config.n_train_tasks, c.config.n_test_tasks) for c in plan("splits").cells}) == [
+        (10, 30), (20, 20), (30, 10)]
+    context = plan("context-length")
+    c = line_goal.default_context_length
+    assert {cell.config.context_length for cell in context.cells} == {c // 4}
+    assert {p.eval_context_length for probes in context.probes.values() for p in probes} == {c // 4, c, 2 * c}
+    with pytest.raises(ExperimentError, match="a family of your own runs in: main, noise, context-length, splits"):
+        plan("ood-tasks")
+
+
+def test_the_family_rules_give_the_paper_settings_back_on_the_paper_families():
+    from bati.experiments.specs import get_spec
+
+    for name, noises in (("AntDir", (0.0, 0.5, 1.0)), ("HalfCheetahDir", (0.0, 0.4, 0.8))):
+        (part,) = get_spec("noise").for_family(get_family(name))
+        paper = next(p for p in get_spec("noise").parts if p.families == (name,))
+        assert part.noises == paper.noises == noises and part.methods == paper.methods
+    (part,) = get_spec("context-length").for_family(get_family("HalfCheetahDir"))
+    (paper,) = get_spec("context-length").parts
+    assert part.probes == paper.probes and part.settings == paper.settings
+    splits = get_spec("splits")
+    assert [p.settings for p in splits.for_family(get_family("AntDir"))] == [p.settings for p in splits.parts]
+
+
+def test_docs_extending_runs_as_written(tmp_path):
+    """docs/extending.md's Python blocks, in order, in a fresh interpreter (its own LineGoal registration),
+    all but the last (which collects and trains at the quick scale): then the family, its env and its
+    expert work as the page says; the last block at least compiles and imports what it names."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    page = (Path(__file__).parents[1] / "docs" / "extending.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", page, flags=re.S)
+    *definitions, last = blocks
+    check = textwrap.dedent("""
+        import gymnasium, numpy
+        from bati.envs import get_family
+        from bati.experts import load
+        register()
+        family = get_family("LineGoal")
+        task = family.sample_tasks(1, seed=0)[0]
+        env = gymnasium.make("bati/LineGoal-v0", task=task, noise=0.0)
+        obs, _ = env.reset(seed=0)
+        action = load("LineGoal")(obs, task)
+        assert action.shape == (1,) and env.step(action)[0].shape == (1,)
+        print("ok")
+    """)
+    imports = "\n".join(line for line in last.splitlines() if line.startswith("from ") or line.startswith("import "))
+    compile(last, "extending.md (last block)", "exec")
+    script = "\n\n".join(definitions) + "\n" + imports + "\n" + check
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from bati.envs.base import EPISODE_LENGTH, FamilyRecord, Task, TaskError, TaskFamily, TaskSplit
+from bati.envs.base import (EPISODE_LENGTH, FamilyRecord, Task, TaskEnvMixin, TaskError, TaskFamily, TaskSplit,
+                             scalar_task)
 from bati.errors import BatiError
 
 # family name -> (module, family class, env class); modules are imported lazily so that
@@ -149,5 +150,6 @@ def _register() -> None:
 _register()
 _quiet_mujoco_deprecation()
 
-__all__ = ["EPISODE_LENGTH", "FAMILY_NAMES", "FamilyRecord", "FamilyUnavailable", "Task", "TaskError", "TaskFamily",
-           "TaskSplit", "family_available", "family_names", "get_family", "make_env", "register_family"]
+__all__ = ["EPISODE_LENGTH", "FAMILY_NAMES", "FamilyRecord", "FamilyUnavailable", "Task", "TaskEnvMixin", "TaskError",
+           "TaskFamily", "TaskSplit", "family_available", "family_names", "get_family", "make_env", "register_family",
+           "scalar_task"]

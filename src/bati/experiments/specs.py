@@ -18,6 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bati.envs import FAMILY_NAMES, TaskFamily, family_names, get_family
 from bati.errors import BatiError
 from bati.experiments.probes import Probe, run_probe
 from bati.experiments.sweep import Cell, Grid, SweepResult, expand, record_lock, sweep
@@ -36,6 +37,11 @@ NOISE_METHODS = ABLATION_METHODS + ("er-trl",)
 DEFAULT_SEEDS = {"quick": (0,), "cpu": (0, 1, 2), "paper": (0, 1, 2, 3, 4)}
 # Self-collected context: main's methods but DPT (its causal transformer reads a repeated window as a sequence).
 SELF_COLLECT_METHODS = ("bati", "bati-r", "recon", "focal", "unicorn", "csro", "oracle", "no-context")
+
+
+def own_family_names() -> tuple[str, ...]:
+    """The families registered with `register_family` (not the built-in ones)."""
+    return tuple(n for n in family_names() if n not in FAMILY_NAMES)
 
 
 class ExperimentError(BatiError, ValueError):
@@ -82,10 +88,37 @@ class Spec:
     """Beyond the paper: no table or figure of the paper to compare with."""
     seeds: dict[str, tuple[int, ...]] = field(default_factory=dict)
     """Default seeds per scale where they differ from DEFAULT_SEEDS (a cheap family runs more at quick)."""
+    for_family: Callable[[TaskFamily], tuple[Part, ...]] | None = None
+    """The spec's parts for a family of your own (registered with `register_family`, docs/extending.md),
+    where the experiment transfers to any family; None: only the paper's families."""
 
 
 def _settings(**values) -> tuple[str, ...]:
     return tuple(f"{k}={json.dumps(v)}" for k, v in values.items())
+
+
+# How the transferable experiments read on a family of your own; each rule gives the paper's own
+# settings back on the paper's family (noise: AntDir 0 / 0.5 / 1 and HalfCheetahDir 0 / 0.4 / 0.8 are
+# 0, eps / 2, eps; context-length: 50 / 200 / 400 are C / 4, C, 2 C; splits: AntDir's 40 tasks in quarters).
+def _main_for(family: TaskFamily) -> tuple[Part, ...]:
+    return (Part((family.name,), MAIN_METHODS),)
+
+
+def _noise_for(family: TaskFamily) -> tuple[Part, ...]:
+    eps = family.default_noise
+    return (Part((family.name,), NOISE_METHODS, noises=(0.0, eps / 2, eps)),)
+
+
+def _splits_for(family: TaskFamily) -> tuple[Part, ...]:
+    return tuple(Part((family.name,), ABLATION_METHODS, settings=_settings(n_train_tasks=n, n_test_tasks=40 - n))
+                 for n in (10, 20, 30))
+
+
+def _context_length_for(family: TaskFamily) -> tuple[Part, ...]:
+    c = family.default_context_length
+    short = max(1, c // 4)
+    return (Part((family.name,), ABLATION_METHODS, settings=_settings(context_length=short),
+                 probes=tuple(Probe(eval_context_length=n) for n in (short, c, 2 * c))),)
 
 
 PI = math.pi
@@ -95,6 +128,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         title="Table 4 with Fig. 4 (p_test) and Fig. 8 (p_train): every method on the five MuJoCo families",
         claim="BATI has the best p_test return on every family, usually by a large margin; encoders drop on p_test",
         parts=(Part(MUJOCO, MAIN_METHODS),),
+        for_family=_main_for,
         paper=PaperTable("Table 4", {
             "oracle": {"AntDir": "58.7", "HalfCheetahVel": "-139.3", "HalfCheetahDir": "291.2",
                        "HopperParam": "290.2", "WalkerParam": "549.2"},
@@ -119,6 +153,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
                Part(("HalfCheetahDir",), NOISE_METHODS, noises=(0.0, 0.4, 0.8))),
         columns="family_noise",
         figures=("curves", "vs"),
+        for_family=_noise_for,
     ),
     Spec(
         name="context-length",
@@ -127,6 +162,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         parts=(Part(("HalfCheetahDir",), ABLATION_METHODS, noises=(0.9,), settings=_settings(context_length=50),
                     probes=tuple(Probe(eval_context_length=c) for c in (50, 200, 400))),),
         columns="context_length",
+        for_family=_context_length_for,
         paper=PaperTable("Table 1", {
             "bati": {"50": "-4.7 ± 1.2", "200": "1.8 ± 0.5", "400": "4.7 ± 1.5"},
             "csro": {"50": "-23.8 ± 1.0", "200": "-24.7 ± 0.7", "400": "-25.3 ± 1.1"},
@@ -156,6 +192,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         parts=tuple(Part(("AntDir",), ABLATION_METHODS, settings=_settings(n_train_tasks=n, n_test_tasks=40 - n))
                     for n in (10, 20, 30)),
         columns="split",
+        for_family=_splits_for,
         paper=PaperTable("Table 5", {
             "bati": {"10/30": "45.0 ± 6.0", "20/20": "46.4 ± 2.9", "30/10": "49.9 ± 4.6"},
             "csro": {"10/30": "4.7 ± 4.2", "20/20": "28.9 ± 3.0", "30/10": "46.2 ± 4.8"},
@@ -285,15 +322,20 @@ def plan_experiment(spec: Spec, scale: str, out_dir: Path, *, seeds: tuple[int, 
     clash = sorted(own & {s.partition("=")[0].strip().replace("-", "_") for s in settings})
     if clash:
         raise ExperimentError(f"experiment {spec.name!r} sets {', '.join(clash)} itself; leave it out of --settings")
+    own = [f for f in families if f not in {f for p in spec.parts for f in p.families} and f in own_family_names()]
+    parts = spec.parts + (tuple(p for f in own for p in spec.for_family(get_family(f))) if spec.for_family else ())
     spec_methods = {m for p in spec.parts for m in p.methods}
-    spec_families = {f for p in spec.parts for f in p.families}
+    spec_families = {f for p in parts for f in p.families}
     for kind, chosen, allowed in (("method", methods, spec_methods), ("family", families, spec_families)):
         extra = [x for x in chosen if x not in allowed]
         if extra:
+            hint = "" if kind == "method" else (
+                " or a family registered with register_family" if spec.for_family else
+                f" (a family of your own runs in: {', '.join(n for n, s in SPECS.items() if s.for_family)})")
             raise ExperimentError(f"experiment {spec.name!r} has no {kind} {', '.join(map(repr, extra))}; "
-                                  f"its {kind} choices: {', '.join(sorted(allowed))}")
+                                  f"its {kind} choices: {', '.join(sorted(allowed))}{hint}")
     grids, cells, probes = [], [], {}
-    for part in spec.parts:
+    for part in parts:
         keep_methods = tuple(m for m in part.methods if not methods or m in methods)
         keep_families = tuple(f for f in part.families if not families or f in families)
         if not keep_methods or not keep_families:
