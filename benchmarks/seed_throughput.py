@@ -17,7 +17,8 @@ import jax
 import numpy as np
 from train_step import DIMS, random_data
 
-from bati.train import TrainConfig, Trainer, describe_device
+from bati.config import TrainConfig
+from bati.train import Trainer, describe_device
 
 
 def seed_steps_per_second(trainer: Trainer, data, k: int, length: int, chunks: int) -> float:

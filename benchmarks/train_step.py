@@ -16,7 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from bati.data import FamilyData, TaskData
-from bati.train import TrainConfig, Trainer
+from bati.config import TrainConfig
+from bati.train import Trainer
 
 DIMS = {"PointGoal": (2, 2, 2), "AntDir": (27, 8, 2), "HalfCheetahVel": (17, 6, 1), "HalfCheetahDir": (17, 6, 1),
         "HopperParam": (11, 3, 1), "WalkerParam": (17, 6, 1)}

@@ -527,7 +527,8 @@ TRAIN_SCRIPT = textwrap.dedent("""
     import sys
     from pathlib import Path
     from bati.rl.iql import IQLConfig
-    from bati.train import TrainConfig, train
+    from bati.config import TrainConfig
+    from bati.train import train
     config = TrainConfig(family="PointGoal", steps=60, log_every=5, eval_every=20, checkpoint_every=10,
                          iql=IQLConfig(hidden_dims=(32, 32)), task_batch=4, batch_size=8, context_length=20,
                          eval_context_length=20, episodes_per_task=2, context_episodes=1,

@@ -310,7 +310,8 @@ def test_a_small_collection_holds_one_hot_actions_and_the_most_different_tasks(s
 @pytest.mark.slow
 @pytest.mark.parametrize("method", sorted(METHODS))
 def test_every_method_trains_and_evaluates_on_a_small_collection(method, small_collection, tmp_path):
-    from bati.train import TrainConfig, train
+    from bati.config import TrainConfig
+    from bati.train import train
 
     root, _, data = small_collection
     expert_value = np.mean([kuhn.best_response_value(np.array(t)) for t in data.test_tasks])

@@ -15,7 +15,8 @@ from bati.rl.iql import IQLConfig
 from bati.envs import FAMILY_NAMES, get_family
 from bati.evaluate import Evaluator
 from bati.methods import METHODS
-from bati.train import TrainConfig, Trainer, TrainingError, train, train_seeds
+from bati.config import TrainConfig
+from bati.train import Trainer, TrainingError, train, train_seeds
 
 TINY = dict(iql=IQLConfig(hidden_dims=(32, 32)), task_batch=4, batch_size=8, context_length=20, log_every=5)
 

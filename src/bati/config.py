@@ -17,6 +17,7 @@ from typing import Any, Literal
 
 from bati.data.own import OWN_FAMILY
 from bati.envs import TaskSplit
+from bati.io import read_run_config
 from bati.methods.bati import BATIConfig
 from bati.methods.csro import CSROConfig
 from bati.methods.dpt import DPTConfig
@@ -158,8 +159,6 @@ class TrainConfig:
     @classmethod
     def from_file(cls, path: Path) -> TrainConfig:
         """The config recorded in a run directory (or its config.json): `bati train --config`."""
-        from bati.train import read_run_config
-
         path = Path(path)
         return cls.from_record(read_run_config(path.parent if path.name == "config.json" else path))
 

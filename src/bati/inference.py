@@ -35,7 +35,9 @@ from bati.data.own import load_own_data
 from bati.errors import BatiError
 from bati.evaluate import calibrate as calibrate_method
 from bati.io import git_commit
-from bati.train import TrainConfig, Trainer, load_checkpoint, read_run_config
+from bati.config import TrainConfig
+from bati.io import read_run_config
+from bati.train import Trainer, load_checkpoint
 
 QUANTILE = 0.95
 

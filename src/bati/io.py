@@ -362,3 +362,21 @@ def _release(path: Path, fd: int) -> None:
             path.unlink(missing_ok=True)
     finally:
         os.close(fd)
+
+
+def read_run_config(out: Path) -> dict:
+    """A run directory's config.json as a dict; one-line errors naming what is wrong (not a directory,
+    no config, not JSON, not an object)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out} is a file, not a run directory")
+    path = out / "config.json"
+    if not path.is_file():
+        raise ValueError(f"{out} is not a run directory: it has no config.json")
+    try:
+        config = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path} is not valid JSON ({err})") from err
+    if not isinstance(config, dict):
+        raise ValueError(f"{path} holds a JSON {type(config).__name__}, not a run's config")
+    return config

@@ -9,7 +9,6 @@ A run directory holds config.json, metrics.jsonl, eval.jsonl, checkpoint.msgpack
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import platform
@@ -44,6 +43,7 @@ from bati.io import (
     hold_lock,
     read_jsonl,
     read_jsonl_lines,
+    read_run_config,
 )
 from bati.methods import MethodSpec, make_method
 from bati.rl.iql import IQL, IQLState, upgrade_checkpoint
@@ -432,19 +432,3 @@ def _drop_records_after(out: Path, step: int) -> None:
                 atomic_write_text(path, text)
 
 
-def read_run_config(out: Path) -> dict:
-    """A run directory's config.json as a dict; one-line errors naming what is wrong (not a directory,
-    no config, not JSON, not an object)."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out} is a file, not a run directory")
-    path = out / "config.json"
-    if not path.is_file():
-        raise ValueError(f"{out} is not a run directory: it has no config.json")
-    try:
-        config = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path} is not valid JSON ({err})") from err
-    if not isinstance(config, dict):
-        raise ValueError(f"{path} holds a JSON {type(config).__name__}, not a run's config")
-    return config

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bati.config import get_scale
+from bati.config import TrainConfig, get_scale
 from bati.data import ensure_family_data
 from bati.envs import get_family
 from bati.evaluate import reference_returns
@@ -21,7 +21,7 @@ from bati.io import atomic_write_json, atomic_write_text
 from bati.methods import METHODS
 from bati.report.curves import plot_learning_curves
 from bati.report.tables import METHOD_LABELS, results_markdown
-from bati.train import TrainConfig, check_seeds, train_seeds
+from bati.train import check_seeds, train_seeds
 
 
 @dataclass

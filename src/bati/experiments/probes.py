@@ -113,7 +113,8 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
     """Evaluate the run's final checkpoint under `probe` (or read the saved result); see the module."""
     from bati.data import load_family_data
     from bati.evaluate import Evaluator
-    from bati.train import TrainConfig, Trainer, load_checkpoint
+    from bati.config import TrainConfig
+    from bati.train import Trainer, load_checkpoint
 
     probe = probe.check()
     run_dir = Path(run_dir)

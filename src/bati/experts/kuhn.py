@@ -1,7 +1,7 @@
 """KuhnPoker's expert: the exact best response to each opponent, computed by enumeration (not trained).
 
 "The expert for task M" is player 1's best response to opponent M (`bati.envs.kuhn.best_response`,
-which enumerates the deals: the game is tiny). It is a `bati.experts.zoo.Expert`, like the SAC experts:
+which enumerates the deals: the game is tiny). It is a `bati.experts.Expert`, like the SAC experts:
 `act_from_arrays`, `mean_action`, `__call__`, `meta`.
 
 - Deterministic (`deterministic=True`, `mean_action`: DPT's labels, the "Oracle (Pre-IQL)"
@@ -20,7 +20,7 @@ import numpy as np
 
 from bati.envs import get_family
 from bati.envs.kuhn import BET, OBS_DIM, best_response, decision_parts
-from bati.experts.zoo import Expert
+from bati.experts.base import Expert
 
 EXPLORATION = 0.1
 

@@ -11,47 +11,11 @@ import flax
 import jax
 import numpy as np
 
-from bati.envs import Task, TaskError, get_family
+from bati.envs import get_family
+from bati.experts.base import Expert
 from bati.io import atomic_write_bytes, atomic_write_json
 
 ZOO_DIR = Path(__file__).parent / "zoo"
-
-
-class Expert:
-    """A family's expert: `policy(obs, task)` -> action, batched or not.
-
-    `task` is a task of the family (or a list of them for a batch of observations);
-    `deterministic=False` samples from the policy with the given `key` (a jax PRNG key).
-    Subclasses give `act_from_arrays` (batched actions from task arrays) and `mean_action`.
-    """
-
-    family: Any
-    meta: dict
-
-    def task_arrays(self, task: Task | list[Task], batch: int | None) -> np.ndarray:
-        """One task (broadcast over the batch) or one task per observation, as arrays."""
-        try:
-            single = self.family.task_to_array(task)
-        except TaskError:
-            if batch is None:
-                raise
-            return np.stack([self.family.task_to_array(t) for t in task])
-        return single if batch is None else np.broadcast_to(single, (batch, single.shape[0]))
-
-    def __call__(self, obs, task, deterministic: bool = True, key: jax.Array | None = None) -> np.ndarray:
-        obs = np.asarray(obs, dtype=np.float32)
-        batch = obs.shape[0] if obs.ndim == 2 else None
-        tasks = self.task_arrays(task, batch)
-        if not deterministic and key is None:
-            raise ValueError("a stochastic expert action needs a PRNG key: policy(obs, task, deterministic=False, key=key)")
-        key = jax.random.PRNGKey(0) if key is None else key
-        return self.act_from_arrays(obs, tasks, deterministic, key)
-
-    def act_from_arrays(self, obs: np.ndarray, task_arrays: np.ndarray, deterministic: bool, key) -> np.ndarray:
-        raise NotImplementedError
-
-    def mean_action(self, obs: jax.Array, task_arrays: jax.Array) -> jax.Array:
-        raise NotImplementedError
 
 
 class ExpertPolicy(Expert):
