@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 import math
 
 import numpy as np
@@ -281,3 +282,28 @@ def test_cli_bad_input(tmp_path, capsys, case):
     if case == "unreadable":
         assert "warning: skipping" in stderr and "eval.json" in stderr
     assert not out.exists() and sorted(p for p in tmp_path.rglob("*")) == before
+
+
+def test_earlier_sessions_time_adds_the_sessions_before_each_restart(tmp_path):
+    from bati.report.runs import earlier_sessions_time
+
+    clock = [1.0, 2.0, 3.5, 0.5, 4.0, 1.0, 2.0]  # three sessions: 3.5 s, 4.0 s, then the last one (eval.json's)
+    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps({"step": i, "wall_time": t}) + "\n"
+                                                    for i, t in enumerate(clock)))
+    assert earlier_sessions_time(tmp_path) == 7.5
+    assert earlier_sessions_time(tmp_path / "missing") == 0.0
+
+
+def test_curve_records_normalise_by_the_runs_own_references():
+    from bati.experiments.report import curve_records
+    from bati.report.runs import RunResult
+
+    run = RunResult(path=Path("r/eval.json"), family="AntDir", method="oracle", seed=1, p_test_return=0.0,
+                    p_train_return=0.0, reference_returns={"random": -40.0, "expert": 60.0},
+                    curve=[{"step": 10, "p_test_return": 40.0, "p_train_return": 50.0}])
+    (row,) = curve_records("AntDir-cpu", run)
+    assert row["p_test_normalised"] == 0.8 and (row["setting"], row["method"], row["seed"], row["step"]) == (
+        "AntDir-cpu", "oracle", 1, 10)
+    assert curve_records("x", RunResult(path=Path("r/eval.json"), family="F", method="m", seed=0, p_test_return=0.0,
+                                        p_train_return=0.0, curve=[{"step": 1, "p_test_return": 3.0}]))[0][
+        "p_test_normalised"] is None

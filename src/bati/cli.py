@@ -475,12 +475,12 @@ class Experiment:
         # The report covers every cell of the experiment at this scale, finished by this command or another.
         whole = plan_experiment(spec, self.scale, out, seeds=self.seeds, settings=self.settings,
                                 data_root=self.data_root)
+        if self.report_only:  # reads finished cells only, so it needs no lock: a sweep may be running
+            report = experiment_report(whole, out / spec.name, command=self.command_line(whole=True))
+            console.print(Markdown(report["markdown"]))
+            console.print(f"experiment {spec.name}: report in {out / spec.name}/ (nothing trained)", soft_wrap=True)
+            return
         with record_lock(out, status_file(spec)):  # one process at a time runs and reports this experiment here
-            if self.report_only:
-                report = experiment_report(whole, out / spec.name, command=self.command_line(whole=True))
-                console.print(Markdown(report["markdown"]))
-                console.print(f"experiment {spec.name}: report in {out / spec.name}/ (nothing trained)", soft_wrap=True)
-                return
             result = run_experiment(plan, out, data_root=self.data_root, workers=self.workers, backend=self.backend,
                                     address=self.address, show_progress=console.is_terminal, locked=True,
                                     on_probe=lambda label: console.print(f"probe {label}") if console.is_terminal

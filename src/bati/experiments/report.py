@@ -27,10 +27,28 @@ from bati.report.build import (_csv_text, group_runs, group_title, method_order,
                                plot_profile)
 from bati.report.build import table_markdown as group_table
 from bati.report.curves import save_figure
-from bati.report.runs import RunResult
+from bati.report.runs import RunResult, earlier_sessions_time
 from bati.report.tables import METHOD_LABELS
 
 CSV_FIELDS = ("row", "column", "n_seeds", "seeds", "mean", "std", "paper")
+
+
+CURVE_FIELDS = ("setting", "method", "seed", "step", "p_test_return", "p_train_return", "p_test_inference_error",
+                "p_test_normalised")
+
+
+def curve_records(setting: str, run: RunResult) -> list[dict]:
+    """A run's learning curve, one record per evaluation; `p_test_normalised`: (return - random) /
+    (expert - random) with the run's own reference returns (empty without them)."""
+    refs = run.reference_returns or {}
+    low, high = refs.get("random"), refs.get("expert")
+    scale = (high - low) if low is not None and high is not None and high != low else None
+    return [{"setting": setting, "method": run.method, "seed": run.seed, "step": point.get("step"),
+             "p_test_return": point.get("p_test_return"), "p_train_return": point.get("p_train_return"),
+             "p_test_inference_error": point.get("p_test_inference_error"),
+             "p_test_normalised": (point["p_test_return"] - low) / scale
+             if scale and point.get("p_test_return") is not None else None}
+            for point in run.curve]
 
 
 def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
@@ -267,14 +285,20 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
         figures.append("vs.png")
     if "tsne" in spec.figures and plot_tsne(plan, out_dir / "tsne.png"):
         figures.append("tsne.png")
+    curve_rows = []
     if "curves" in spec.figures:
         for group in groups:
             name = f"curves-{group.slug}.png"
             if plot_group(group, out_dir / name, f"{spec.name}: {group.slug}", "return"):
                 figures.append(name)
+            curve_rows += [row for run in group.runs for row in curve_records(group.slug, run)]
     commits = sorted({r["commit"] for r in records if r.get("commit")})
     devices = sorted({r["device"] for r in records if r.get("device")})
-    train_wall = sum(run.wall_time_s or 0.0 for run in runs)
+    jobs: dict[tuple, float] = {}  # the seeds of a setting and method train as one job and share its time
+    for run in runs:
+        key = (run.path.parent.parent, run.method)
+        jobs[key] = max(jobs.get(key, 0.0), (run.wall_time_s or 0.0) + earlier_sessions_time(run.path.parent))
+    train_wall = sum(jobs.values())
     n_done = len(runs)
     header = [
         f"# Experiment `{spec.name}` ({plan.scale} scale)", "", spec.title + ".", "",
@@ -282,7 +306,8 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
         f"- command: `{command}`" if command else "",
         f"- cells finished: {n_done} of {len(plan.cells)}; seeds {list(plan.seeds)}",
         f"- commit(s): {', '.join(c[:12] for c in commits) or 'unknown'}; device(s): {', '.join(devices) or 'unknown'}",
-        f"- summed wall time of the finished training jobs: {train_wall / 60:.1f} min (vmapped seeds share a job's time)",
+        f"- summed wall time of the finished training jobs: {train_wall / 60:.1f} min (the seeds of a job share its "
+        "time; a resumed job's sessions add up)",
         "- numbers: mean over seeds (± std from 2 seeds on) of each run's mean of its last 5 evaluations"
         + ("; probes: mean of 5 evaluations of the final checkpoint" if plan.probes and any(plan.probes.values())
            else ""),
@@ -292,8 +317,11 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
     markdown += "".join(f"\n![{name}]({name})\n" for name in figures)
     atomic_write_text(out_dir / "report.md", markdown)
     atomic_write_text(out_dir / "table.csv", _csv_text(("metric",) + CSV_FIELDS, csv_rows))
+    if curve_rows:
+        atomic_write_text(out_dir / "curves.csv", _csv_text(CURVE_FIELDS, curve_rows))
     for old in [*out_dir.glob("curves-*.png"), out_dir / "vs.png", out_dir / "tsne.png", out_dir / "profile.png"]:
         if old.name not in figures:  # an earlier report's figure (other families or settings): not this one's
             old.unlink(missing_ok=True)
-    files = [out_dir / "report.md", out_dir / "table.csv"] + [out_dir / f for f in figures]
+    files = [out_dir / "report.md", out_dir / "table.csv"] + [out_dir / "curves.csv"] * bool(curve_rows)
+    files += [out_dir / f for f in figures]
     return {"markdown": markdown, "files": files, "records": records, "cells_done": n_done}

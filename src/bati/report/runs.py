@@ -8,6 +8,8 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bati.io import read_jsonl
+
 # Config keys that do not make two runs' settings different (they are what a table compares or where
 # files went). Keys starting with "method_" are ignored as well.
 IGNORED_CONFIG_KEYS = frozenset({"method", "seed", "out_dir", "data_root", "log_to", "method_config"})
@@ -133,6 +135,16 @@ def _flatten(config: dict, prefix: str = "") -> dict:
         else:
             flat[name] = value
     return flat
+
+
+def earlier_sessions_time(run_dir: Path) -> float:
+    """Seconds of a resumed run's earlier sessions (eval.json's wall_time_s is its last session's): each
+    session's clock in metrics.jsonl (`wall_time`) restarts at 0, so the value before each restart counts."""
+    try:
+        clock = [r["wall_time"] for r in read_jsonl(Path(run_dir) / "metrics.jsonl") if "wall_time" in r]
+    except (OSError, ValueError):
+        return 0.0
+    return float(sum(before for before, after in zip(clock, clock[1:]) if after < before))
 
 
 def find_eval_files(directory: Path) -> list[Path]:
