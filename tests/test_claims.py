@@ -91,3 +91,11 @@ def test_cli_writes_the_page(tmp_path, capsys):
 @pytest.mark.parametrize("claim", [c.name for c in CLAIMS])
 def test_every_claim_is_not_tested_without_results(tmp_path, claim):
     assert verdicts(tmp_path)[claim] == ("not tested", "-")
+
+
+def test_er_trl_is_judged_apart_from_the_papers_baselines(tmp_path):
+    scores = {("bati", f): (HIGH, LOW) for f in FAMILIES} | {("er-trl", f): (HIGH, HIGH) for f in FAMILIES}
+    write_cells(tmp_path, CPU, "main", scores)
+    found = verdicts(tmp_path)
+    assert found["C8"] == ("not reproduced", "cpu")  # ER-TRL above BATI on every family
+    assert found["C1"] == ("not tested", "-")  # C1 is about the paper's baselines, none of which ran
