@@ -8,10 +8,18 @@ from pathlib import Path
 import pytest
 
 from bati.cli import main
+from bati.experiments import claims as claims_module
 from bati.experiments.claims import CLAIMS, SOURCES, decide, overall
 from bati.experiments.specs import get_spec, plan_experiment
 
 CPU = next(s for s in SOURCES if s.scale == "cpu")
+
+
+@pytest.fixture(autouse=True)
+def fewer_replicates(monkeypatch):
+    """200 bootstrap replicates instead of the page's 2,000: the verdicts of these clear-cut cases do not
+    depend on it, and the suite stays fast."""
+    monkeypatch.setattr(claims_module, "REPS", 200)
 QUICK = SOURCES[0]
 
 

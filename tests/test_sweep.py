@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import socket
 
 import pytest
@@ -193,6 +194,8 @@ def test_cli_experiment_on_a_held_record_is_one_line_and_exit_2(tmp_path, capsys
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not os.environ.get("BATI_TEST_RAY"), reason="starts a local Ray cluster (minutes on 2 cores): "
+                    "BATI_TEST_RAY=1 python -m pytest tests/test_sweep.py -k ray")
 def test_ray_backend_runs_a_tiny_grid_on_a_local_ray(tmp_path):
     ray = pytest.importorskip("ray")
     from bati.data.collect import collect

@@ -425,21 +425,16 @@ def run_collection(
 def _run_parallel(family: TaskFamily, chunks: list[_Chunk], chunk_size: int, noise: float, seed: int,
                   workers: int, zoo_dir, consume, advance) -> None:
     """Roll out `chunks` in `workers` spawned processes; `consume` them in order as they finish."""
-    import multiprocessing
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures import FIRST_COMPLETED, wait
 
-    executor = ProcessPoolExecutor(
-        max_workers=workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=_worker_init,
-        initargs=(family.name, None if zoo_dir is None else str(zoo_dir), noise, seed, chunk_size),
-    )
+    from bati.processes import spawned_pool
+
     window = 4 * workers  # chunks submitted ahead of the next one to consume (bounds the memory)
     pending: dict = {}  # future -> chunk index
     done: dict[int, tuple] = {}  # finished chunks waiting for an earlier one
     next_submit = next_consume = 0
-    ok = False
-    try:
+    initargs = (family.name, None if zoo_dir is None else str(zoo_dir), noise, seed, chunk_size)
+    with spawned_pool(workers, _worker_init, initargs) as executor:
         while next_consume < len(chunks):
             while next_submit < len(chunks) and next_submit < next_consume + window:
                 pending[executor.submit(_worker_rollout, chunks[next_submit])] = next_submit
@@ -453,15 +448,6 @@ def _run_parallel(family: TaskFamily, chunks: list[_Chunk], chunk_size: int, noi
             while next_consume in done:
                 consume(chunks[next_consume], *done.pop(next_consume))
                 next_consume += 1
-        ok = True
-    finally:
-        if not ok:  # an error or an interrupt: stop the workers now, not after their current chunk
-            for future in pending:
-                future.cancel()
-            for process in list((getattr(executor, "_processes", None) or {}).values()):
-                if process.is_alive():
-                    process.terminate()
-        executor.shutdown(wait=True, cancel_futures=True)
 
 
 def _write(family: TaskFamily, plan: Plan, d: DatasetPlan, buf: dict, noise: float, out_dir: Path,

@@ -298,13 +298,11 @@ def _run_locally(jobs: list[Job], workers: int, running: Callable, finished: Cal
             else:
                 finished(job, None)
         return
-    import multiprocessing
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures import FIRST_COMPLETED, wait
 
-    # Several workers may share one GPU: none may grab most of its memory up front. Spawned workers
-    # inherit this environment; JAX is not fork-safe, hence "spawn".
-    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+    from bati.processes import spawned_pool
+
+    with spawned_pool(workers) as pool:  # several jobs may share one GPU
         queue, futures = list(jobs), {}
         while queue or futures:
             while queue and len(futures) < workers:
