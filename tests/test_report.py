@@ -307,3 +307,18 @@ def test_curve_records_normalise_by_the_runs_own_references():
     assert curve_records("x", RunResult(path=Path("r/eval.json"), family="F", method="m", seed=0, p_test_return=0.0,
                                         p_train_return=0.0, curve=[{"step": 1, "p_test_return": 3.0}]))[0][
         "p_test_normalised"] is None
+
+
+def test_settings_added_later_at_their_old_value_do_not_split_a_group(tmp_path):
+    from bati.report.build import group_runs
+    from bati.report.runs import load_runs
+
+    write_run(tmp_path, "PointGoal", "bati", 0, -280.0, -300.0, 0.2, 0.3)
+    newer = write_run(tmp_path, "PointGoal", "recon", 0, -270.0, -400.0, 0.1, 1.2)
+    summary = json.loads((newer / "eval.json").read_text())
+    summary["config"].update(datasets=[], held_out=0.2, family_version=1)  # what a newer version records
+    (newer / "eval.json").write_text(json.dumps(summary))
+    assert len(group_runs(load_runs(tmp_path))) == 1
+    summary["config"]["family_version"] = 2  # another env version is another setting
+    (newer / "eval.json").write_text(json.dumps(summary))
+    assert len(group_runs(load_runs(tmp_path))) == 2

@@ -20,9 +20,10 @@ def _comparable(config: dict) -> dict:
     """A run's recorded config in today's names (older records upgraded), without its method's
     hyperparameters where they are the method's defaults on its family: runs of different methods at
     the same setting share a table, and a non-default one (e.g. csro.club_weight) is a setting."""
-    from bati.config import default_method_record, method_sections, upgrade_record
+    from bati.config import LATER_FIELDS, default_method_record, method_sections, upgrade_record
 
-    config = upgrade_record(config)
+    # settings added later, at the value older runs had: absent from older records, so left out of all
+    config = {k: v for k, v in upgrade_record(config).items() if not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
     for name in method_sections():
         if name in config:
             try:
