@@ -98,3 +98,33 @@ def test_an_expert_checkpoint_saved_before_train_states_loads_into_them():
            "actor_opt": new["actor"]["opt_state"], "critic_opt": new["critic"]["opt_state"], "alpha_opt": scalar_adam}
     restored = state_from_bytes(sac.init(jax.random.PRNGKey(1)), flax.serialization.msgpack_serialize(old))
     jax.tree_util.tree_map(np.testing.assert_array_equal, restored, state)
+
+
+def test_an_expert_is_exported_into_its_run_directory_unless_the_package_is_asked_for(tmp_path):
+    from bati.experts.zoo import ZOO_DIR
+
+    config = ExpertTrainConfig("PointGoal", out_dir=tmp_path / "run").resolved()
+    assert config.export_dir == tmp_path / "run" / "zoo" and config.total_steps == 20_000  # the record's
+    assert ExpertTrainConfig("PointGoal", export_dir=tmp_path / "z").resolved().export_dir == tmp_path / "z"
+    assert ExpertTrainConfig("PointGoal", into_package=True).resolved().export_dir == ZOO_DIR
+
+
+@pytest.mark.parametrize("settings, message", [
+    ({"total_steps": 0}, "total_steps must be an integer >= 1, got 0 (leave it out for the family's 20,000)"),
+    ({"total_steps": -5}, "total_steps must be an integer >= 1"),
+    ({"num_envs": 0}, "num_envs must be an integer >= 1"),
+    ({"eval_every": 0}, "eval_every must be an integer >= 1"),
+    ({"into_package": True, "export_dir": "zoo"}, "either --export-dir or --into-package"),
+])
+def test_bad_expert_settings_are_refused_before_any_work(tmp_path, settings, message, capsys):
+    from bati.cli import main
+
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        ExpertTrainConfig("PointGoal", out_dir=tmp_path / "run", **settings).resolved()
+    args = ["experts", "train", "--family", "PointGoal", "--out-dir", str(tmp_path / "run")]
+    for key, value in settings.items():
+        args += [f"--{key.replace('_', '-')}"] if value is True else [f"--{key.replace('_', '-')}", str(value)]
+    assert main(args) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and message in err[0]
+    assert not (tmp_path / "run").exists()

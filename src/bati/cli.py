@@ -22,6 +22,7 @@ from bati.config import NOT_IDENTITY, ScaleName, TrainConfig
 from bati.envs.base import TaskSplit
 from bati.errors import BatiWarning
 from bati.experiments.sweep import Grid
+from bati.experts.train import ExpertTrainConfig
 
 console = Console()
 # Errors go to stderr on one line, whatever the terminal width (soft_wrap: no hard line breaks).
@@ -99,26 +100,18 @@ class Envs:
 
 
 @dataclass
-class ExpertsTrain:
-    """Train a family's task-conditioned SAC expert (checkpoints; re-running resumes)."""
-
-    family: str
-    total_steps: int | None = None
-    """Environment transitions (default: the family's record, FamilyRecord.expert_steps)."""
-    seed: int = 0
-    updates_per_step: float = 0.5
-    out_dir: Path | None = None
-    """Run directory (default runs/experts/<family>)."""
-    export_dir: Path | None = None
-    """Where to export the finished expert (default: the package zoo)."""
+class ExpertsTrain(ExpertTrainConfig):
+    """Train a family's task-conditioned SAC expert (checkpoints; re-running resumes). The export goes into
+    the run directory's zoo/ unless --export-dir or --into-package says otherwise."""
 
     def run(self) -> None:
-        from bati.experts.train import ExpertTrainConfig, train_expert
+        from bati.experts.train import train_expert
 
-        config = ExpertTrainConfig(self.family, self.total_steps, seed=self.seed, out_dir=self.out_dir,
-                                   updates_per_step=self.updates_per_step, export_dir=self.export_dir)
+        config = self.resolved()  # bad values: one line before any work
         out = train_expert(config)
-        console.print(f"expert run in {out}; exported to {self.export_dir or 'the package zoo'}")
+        where = "the package zoo (every later collection of it uses this expert)" if config.into_package else \
+            f"{config.export_dir} (collect with --zoo-dir {config.export_dir})"
+        console.print(f"expert run in {out}; exported to {where}", soft_wrap=True)
 
 
 @dataclass

@@ -43,7 +43,11 @@ class ExpertTrainConfig:
     out_dir: Path | None = None
     """Run directory (default: runs/experts/<family>)."""
     export_dir: Path | None = None
-    """Where the finished actor is exported (default: the package zoo)."""
+    """Zoo directory the finished actor is exported into, as <export_dir>/<family>/ (default: the run
+    directory's zoo/, for `--zoo-dir RUN_DIR/zoo`); collect with `--zoo-dir` pointing there."""
+    into_package: bool = False
+    """Export into the package's own zoo instead (src/bati/experts/zoo: the expert every later collection
+    of this family uses, replacing the shipped one)."""
     sac: SACConfig = field(default_factory=SACConfig)
 
     def resolved(self) -> ExpertTrainConfig:
@@ -51,11 +55,20 @@ class ExpertTrainConfig:
         if record.expert_steps is None:
             raise ValueError(f"{self.family}'s expert is not a SAC (KuhnPoker: the exact best response, "
                              "bati.experts.kuhn, computed when needed): there is no SAC expert to train")
-        total = self.total_steps or record.expert_steps
-        if total <= 0 or self.num_envs <= 0 or self.updates_per_step < 0:
-            raise ValueError("total_steps and num_envs must be positive, updates_per_step >= 0")
+        for name in ("total_steps", "num_envs", "checkpoint_every", "eval_every", "eval_tasks"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
+                hint = f" (leave it out for the family's {record.expert_steps:,})" if name == "total_steps" else ""
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}{hint}")
+        if self.updates_per_step < 0 or self.start_steps < 0:
+            raise ValueError("updates_per_step and start_steps must be >= 0")
+        if self.into_package and self.export_dir is not None:
+            raise ValueError("give either --export-dir or --into-package, not both")
         out = self.out_dir or Path("runs/experts") / self.family
-        return ExpertTrainConfig(**{**asdict(self), "total_steps": total, "out_dir": out, "sac": self.sac})
+        export = _default_zoo() if self.into_package else self.export_dir or out / "zoo"
+        total = record.expert_steps if self.total_steps is None else self.total_steps
+        return ExpertTrainConfig(**{**asdict(self), "total_steps": total, "out_dir": out, "export_dir": export,
+                                    "sac": self.sac})
 
 
 class ReplayBuffer:
@@ -156,7 +169,7 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
             "family_version": family.record.version,
             "hidden_dims": list(config.sac.hidden_dims), "train_steps": steps, "seed": config.seed,
             "train_wall_time_s": round(time.perf_counter() - start, 1), "final_eval": last_eval}
-    save_expert((config.export_dir or _default_zoo()) / config.family, config.family, state.actor.params, meta)
+    save_expert(config.export_dir / config.family, config.family, state.actor.params, meta)
     return out
 
 
