@@ -312,3 +312,19 @@ def test_unknown_or_missing_sinks_fail_before_any_work(tmp_path, monkeypatch):
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "wandb" else real(name, *a))
     with pytest.raises(SinkUnavailable, match=r"pip install 'bati\[wandb\]'"):
         TrainConfig(log_to=("wandb",)).resolved()
+
+
+def test_a_run_takes_its_expert_from_zoo_dir(tmp_path, point_data, monkeypatch):
+    """The expert of --zoo-dir gives the reference return (and would collect missing data, and label DPT)."""
+    import shutil
+
+    from bati.experts.zoo import ZOO_DIR
+
+    zoo = tmp_path / "zoo"
+    shutil.copytree(ZOO_DIR / "PointGoal", zoo / "PointGoal")
+    asked = []
+    real = train_module.reference_returns
+    monkeypatch.setattr(train_module, "reference_returns",
+                        lambda data, zoo_dir=None, **k: asked.append(zoo_dir) or real(data, zoo_dir=zoo_dir, **k))
+    summary = train(_config(tmp_path, "own-zoo", zoo_dir=zoo), show_progress=False)
+    assert asked == [zoo] and summary["reference_returns"]["expert"] == real(point_data)["expert"]

@@ -336,12 +336,14 @@ class Run:
     out_dir: Path | None = None
     """Experiment directory (default runs/<family>/<scale>)."""
     data_root: Path = Path("data")
+    zoo_dir: Path | None = None
+    """Where the family's expert is (default: the package zoo)."""
 
     def run(self) -> None:
         from bati.experiments.main_job import MainJobConfig, run_main_job
 
         results = run_main_job(MainJobConfig(self.family, self.methods, self.seeds, self.scale, self.steps,
-                                             self.noise, self.data_root, self.out_dir))
+                                             self.noise, self.data_root, self.out_dir, self.zoo_dir))
         console.print(Markdown(results["markdown"]))
         console.print(f"wall time {results['wall_time_s'] / 60:.1f} min; results in {results['out_dir']}/"
                       "(results.json, results.md, learning_curves.png)")

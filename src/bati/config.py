@@ -93,6 +93,9 @@ class TrainConfig:
     data_seed: int = 0
     """Seed of the collection to train on (its `bati data collect --seed`)."""
     data_root: Path = Path("data")
+    zoo_dir: Path | None = None
+    """Where the family's expert is (default: the package zoo): it collects missing data, gives the expert
+    reference return and DPT's labels (`bati experts train` exports into its run directory's zoo/)."""
     out_dir: Path | None = None
     """Run directory (default: runs/<family>/<scale>/<method>-seed<seed>)."""
     learning_rate: float = 3e-4
@@ -355,10 +358,11 @@ def _dataclass_from(cls, values: dict):
 
 # --- identity across versions ----------------------------------------------------------------
 # Where a run lives is not what it is: these fields may differ when a run directory is moved or resumed.
-NOT_IDENTITY = ("out_dir", "data_root", "log_to")
+NOT_IDENTITY = ("out_dir", "data_root", "log_to", "zoo_dir")
 # Fields added to TrainConfig after runs were recorded: a saved config without one had this value.
 LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": None, "test_task_range": None,
-                "datasets": [], "task_key": None, "held_out": 0.2, "eval_env": None, "family_version": 1}
+                "datasets": [], "task_key": None, "held_out": 0.2, "eval_env": None, "family_version": 1,
+                "zoo_dir": None}
 
 
 def upgrade_record(record: dict) -> dict:

@@ -15,6 +15,7 @@ transitions from p_train followed by N r from p_test, one source called "mixed".
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -191,16 +192,17 @@ def calibrate(method, params, data: FamilyData, context_length: int, key: jax.Ar
     return method.calibrate(params, sample_off_policy_contexts(data.train, key, length), train_distances)
 
 
-def reference_returns(data: FamilyData, seed: int = 0) -> dict[str, float]:
+def reference_returns(data: FamilyData, seed: int = 0, zoo_dir: str | Path | None = None) -> dict[str, float]:
     """Mean return on the test tasks of a uniform random policy (0 on a normalised scale) and of the
-    data-collecting experts, each acting for its own task (1; the paper's "Oracle (Pre-IQL)")."""
+    data-collecting experts (from `zoo_dir`, default the package zoo), each acting for its own task (1; the
+    paper's "Oracle (Pre-IQL)")."""
     from bati.experts import load
     from bati.experts.card import expert_episodes
 
     family = get_family(data.family)
     exact_random = family.exact_returns(None, data.test_tasks, data.noise)
     if exact_random is not None:  # computed expectations (KuhnPoker: per hand), as `Evaluator` reports them
-        expert = load(data.family)
+        expert = load(data.family, zoo_dir)
         arrays = np.stack([family.task_to_array(t) for t in data.test_tasks])
         key = jax.random.PRNGKey(seed)
         exact_expert = family.exact_returns(lambda obs: expert.act_from_arrays(obs, arrays, True, key),
@@ -212,7 +214,7 @@ def reference_returns(data: FamilyData, seed: int = 0) -> dict[str, float]:
     probe.close()
     random_episodes = rollout(family, data.test_tasks, lambda obs, _: rng.uniform(low, high, (len(obs), len(low))),
                               noise=data.noise, seed=3000 + seed)
-    expert = load(data.family)
+    expert = load(data.family, zoo_dir)
     experts = expert_episodes(expert, data.test_tasks, data.test_tasks, data.noise, seed=2000 + seed)
     return {"random": float(random_episodes.returns.mean()), "expert": float(experts.returns.mean())}
 

@@ -83,7 +83,7 @@ class Trainer:
         self.optimizer = optax.adam(config.learning_rate)
         self.train_task_arrays = jnp.asarray(data.train_task_arrays, jnp.float32)
         if self.method.needs_expert_actions:
-            self.expert = expert or load_expert(config.family)
+            self.expert = expert or load_expert(config.family, config.zoo_dir)
         self.run_chunk = jax.jit(self._run_chunk, static_argnames="length")
         # k seeds in one program: states and keys stacked on a leading axis, the data shared.
         self.run_chunks = jax.jit(self._run_chunks, static_argnames="length")
@@ -229,9 +229,10 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict
             raise ValueError(f"task_batch ({config.task_batch}) must be at most the {len(data.train_tasks)} tasks of "
                              "your datasets: give --task-batch")
     else:
+        load_expert(config.family, config.zoo_dir)  # no expert: one line now, not after training (its return)
         data = ensure_family_data(config.family, config.data_scale, config.data_seed, config.noise, config.data_root,
                                   n_episodes=config.episodes_per_task, n_context_episodes=config.context_episodes,
-                                  progress=show_progress, tasks=config.task_split())
+                                  progress=show_progress, tasks=config.task_split(), zoo_dir=config.zoo_dir)
     trainer = Trainer(config, data)
     if config.datasets:
         evaluator = OfflineEvaluator(trainer, data, config.eval_context_length, *own_env(config, data))
@@ -255,7 +256,7 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict
             for run in runs:
                 for sink in run.sinks:
                     sink.close()
-    references = None if config.datasets else reference_returns(data)
+    references = None if config.datasets else reference_returns(data, zoo_dir=config.zoo_dir)
     session = {"device": describe_device(), "jax_version": jax.__version__, "commit": git_commit(),
                "wall_time_s": round(time.perf_counter() - start, 2)}
     summaries = []

@@ -36,6 +36,8 @@ class MainJobConfig:
     data_root: Path = Path("data")
     out_dir: Path | None = None
     """Experiment directory (default: runs/<family>/<scale>)."""
+    zoo_dir: Path | None = None
+    """Where the family's expert is (default: the package zoo)."""
 
 
 def resolve_methods(methods: tuple[str, ...]) -> list[str]:
@@ -84,14 +86,14 @@ def run_main_job(config: MainJobConfig, show_progress: bool = True) -> dict:
     steps = config.steps if config.steps is not None else MAIN_JOB_STEPS.get(config.scale)
     out = config.out_dir or Path("runs") / config.family / config.scale
     data = ensure_family_data(config.family, get_scale(config.scale).data, 0, config.noise, config.data_root,
-                              progress=show_progress)
-    references = reference_returns(data)
+                              progress=show_progress, zoo_dir=config.zoo_dir)
+    references = reference_returns(data, zoo_dir=config.zoo_dir)
     oracle = references["expert"]  # the paper's "Oracle (Pre-IQL)"
 
     rows, run_dirs = [], {}
     for method in methods:
         train_config = TrainConfig(family=config.family, method=method, scale=config.scale, steps=steps,
-                                   noise=config.noise, data_root=config.data_root)
+                                   noise=config.noise, data_root=config.data_root, zoo_dir=config.zoo_dir)
         summaries = train_seeds(train_config, config.seeds, show_progress=show_progress, runs_dir=out)
         run_dirs[method] = [out / f"{method}-seed{seed}" for seed in config.seeds]
         keys = ("p_train_return", "p_test_return", "p_train_inference_error", "p_test_inference_error")

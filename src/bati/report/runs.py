@@ -12,7 +12,8 @@ from bati.io import read_jsonl
 
 # Config keys that do not make two runs' settings different (they are what a table compares or where
 # files went). Keys starting with "method_" are ignored as well.
-IGNORED_CONFIG_KEYS = frozenset({"method", "seed", "out_dir", "data_root", "log_to", "method_config"})
+IGNORED_CONFIG_KEYS = frozenset({"method", "seed", "out_dir", "data_root", "log_to", "zoo_dir",
+                                 "method_config"})
 REQUIRED_KEYS = ("family", "method", "seed", "p_test_return", "p_train_return")
 
 
