@@ -159,6 +159,22 @@ def write(relative: str, content: bytes | str, *, where: str = "run") -> Callabl
     return setup
 
 
+def edit_config(**changes) -> Callable:
+    """The run's config.json with some settings replaced (a hand edit)."""
+    def setup(env: Env, patch, stack) -> None:
+        path = env.run / "config.json"
+        record = json.loads(path.read_text())
+        for key, value in changes.items():
+            section, _, name = key.partition("__")
+            if name:
+                record[section][name] = value
+            else:
+                record[key] = value
+        path.write_text(json.dumps(record))
+
+    return setup
+
+
 def tear_last_line(name: str) -> Callable:
     """A kill in the middle of an append: half of one more record, no newline."""
 
@@ -298,6 +314,18 @@ CASES = [
          ("bati.latent_samples", ">= 1")),
     Case("unknown logging sink", lambda e: [*TRAIN, "--log-to", "csv", "--data-root", e.data], 2,
          ("unknown logging sink 'csv'",)),
+    Case("--datasets without a value", lambda e: ["train", "--datasets", "--data-root", e.data], 2,
+         ("--datasets needs at least one value",)),
+    Case("iql.hidden_dims 0", lambda e: [*TRAIN, "--iql.hidden-dims", "0", "--data-root", e.data], 2,
+         ("iql.hidden_dims must be one or more integers >= 1", "(0,)")),
+    Case("iql.hidden_dims -5", lambda e: [*TRAIN, "--iql.hidden-dims", "-5", "--data-root", e.data], 2,
+         ("iql.hidden_dims must be one or more integers >= 1", "(-5,)")),
+    Case("iql.hidden_dims empty", lambda e: [*TRAIN, "--iql.hidden-dims", "--data-root", e.data], 2,
+         ("iql.hidden_dims must be one or more integers >= 1", "()")),
+    Case("csro.club_hidden_dims 0", lambda e: [*TRAIN, "--method", "csro", "--csro.club-hidden-dims", "0",
+                                               "--data-root", e.data], 2, ("csro.club_hidden_dims must be",)),
+    Case("steps beyond any plan", lambda e: ["train", "--steps", "99999999999999999999", "--data-root", e.data], 2,
+         ("steps must be at most 1,000,000,000",)),
     Case("train --zoo-dir without the expert", lambda e: [*TRAIN, "--zoo-dir", e.tmp, "--data-root", e.data,
                                                            "--out-dir", e.tmp / "new"], 2,
          ("no expert for PointGoal in", "bati experts train --family PointGoal")),
@@ -345,6 +373,12 @@ CASES = [
     Case("sweep out-dir is a file", lambda e: ["sweep", "--out-dir", e.tmp / "a_file"], 2, ("a_file is a file",)),
     # --- a run directory's files
     Case("config.json is []", lambda e: e.train(), 2, ("config.json holds a list",), setup=write("config.json", "[]")),
+    Case("--config: iql is a list", lambda e: ["train", "--config", e.run], 2,
+         ("config setting 'iql' must be an object of settings", "list [1, 2]"), setup=edit_config(iql=[1, 2])),
+    Case("--config: hidden_dims is text", lambda e: ["train", "--config", e.run], 2,
+         ("iql.hidden_dims must be one or more integers >= 1", "'abc'"), setup=edit_config(iql__hidden_dims="abc")),
+    Case("--config: an unknown setting", lambda e: ["train", "--config", e.run], 2,
+         ("setting(s) this version does not know: 'stpes'",), setup=edit_config(stpes=5)),
     Case("config.json torn", lambda e: e.train(), 2, ("config.json is not valid JSON",),
          setup=write("config.json", '{"family": "Poi')),
     Case("rerun with other settings", lambda e: ["train", "--steps", "10", "--data-root", e.data, "--out-dir", e.run], 2,

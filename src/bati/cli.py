@@ -575,6 +575,11 @@ def main(argv: list[str] | None = None) -> int:
     from bati.envs import TaskError
     from bati.errors import BatiError, describe_os_error
 
+    args = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    for option in NEEDS_A_VALUE:  # an empty list there would silently mean the default
+        for i, arg in enumerate(args):
+            if arg == option and (i + 1 == len(args) or args[i + 1].startswith("--")):
+                return _error(f"{option} needs at least one value (e.g. {option} my_data/task-0)", 2)
     try:
         command = _parse(argv)
     except SystemExit as exit_:
@@ -593,6 +598,11 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             return _error("interrupted; run the same command again to resume", 130)
     return 0
+
+
+NEEDS_A_VALUE = ("--datasets",)
+"""List options whose empty value is their default (your own data: none, i.e. PointGoal): given without a
+value they are a mistake, not a request for the default."""
 
 
 def _error(message: str, code: int) -> int:

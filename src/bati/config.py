@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -144,6 +144,15 @@ class TrainConfig:
     # --- reading and writing ------------------------------------------------------------------
     @classmethod
     def from_record(cls, record: dict) -> TrainConfig:
+        """See _from_record; a section that is not an object of settings is one ValueError."""
+        for name in ("iql", *method_sections()):
+            if name in record and not isinstance(record[name], dict):
+                raise ValueError(f"config setting {name!r} must be an object of settings, got "
+                                 f"{type(record[name]).__name__} {record[name]!r}")
+        return cls._from_record(record)
+
+    @classmethod
+    def _from_record(cls, record: dict) -> TrainConfig:
         """The config a run directory's config.json records (lists back to tuples; `runtime` and keys
         this version does not know are ignored; older records are upgraded first)."""
         record = upgrade_record(record)
@@ -163,7 +172,11 @@ class TrainConfig:
     def from_file(cls, path: Path) -> TrainConfig:
         """The config recorded in a run directory (or its config.json): `bati train --config`."""
         path = Path(path)
-        return cls.from_record(read_run_config(path.parent if path.name == "config.json" else path))
+        record = read_run_config(path.parent if path.name == "config.json" else path)
+        unknown = sorted(set(record) - {f.name for f in fields(cls)} - RECORD_ONLY)
+        if unknown:
+            raise ValueError(f"{path} has setting(s) this version does not know: {', '.join(map(repr, unknown))}")
+        return cls.from_record(record)
 
     def record(self) -> dict:
         """The config as JSON data (config.json): only the run's own method's hyperparameters."""
@@ -221,6 +234,8 @@ class TrainConfig:
             value = getattr(self, setting)
             if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
                 raise ValueError(f"{setting} must be an integer >= 1, got {value!r}")
+            if value is not None and value > MAX_COUNT:
+                raise ValueError(f"{setting} must be at most {MAX_COUNT:,}, got {value:,}")
         for setting in ("seed", "data_seed"):
             if not isinstance(getattr(self, setting), int) or getattr(self, setting) < 0:
                 raise ValueError(f"{setting} must be an integer >= 0, got {getattr(self, setting)!r}")
@@ -232,6 +247,15 @@ class TrainConfig:
         section = self.method_config()
         if hasattr(section, "check"):
             section.check()
+        layers = {"iql.hidden_dims": self.iql.hidden_dims}
+        if is_dataclass(section):
+            layers |= {f"{method_config_key(self.method)}.{f.name}": getattr(section, f.name) for f in fields(section)
+                       if f.name.endswith("hidden_dims")}
+        for setting, dims in layers.items():
+            if dims is not None and not (isinstance(dims, (tuple, list)) and dims and all(
+                    isinstance(d, int) and not isinstance(d, bool) and d >= 1 for d in dims)):
+                raise ValueError(f"{setting} must be one or more integers >= 1 (the hidden layers' sizes), "
+                                 f"got {dims!r}")
         pick = lambda value, default: default if value is None else value  # noqa: E731
         steps = pick(self.steps, scale.steps)
         tenth = max(self.log_every, (steps // 10) // self.log_every * self.log_every)
@@ -355,6 +379,11 @@ def _dataclass_from(cls, values: dict):
     names = {f.name for f in fields(cls)}
     return cls(**{k: _tuples(v) for k, v in values.items() if k in names})
 
+
+MAX_COUNT = 10**9
+"""The largest step count, batch size or length a config accepts (beyond it: a typo, not a plan)."""
+# Keys a config.json holds that are not TrainConfig fields: what the run recorded about itself, and old names.
+RECORD_ONLY = frozenset({"runtime", "family_version", "rl_hidden_dims"})
 
 # --- identity across versions ----------------------------------------------------------------
 # Where a run lives is not what it is: these fields may differ when a run directory is moved or resumed.
