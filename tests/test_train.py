@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import flax
 import jax
@@ -328,3 +329,32 @@ def test_a_run_takes_its_expert_from_zoo_dir(tmp_path, point_data, monkeypatch):
                         lambda data, zoo_dir=None, **k: asked.append(zoo_dir) or real(data, zoo_dir=zoo_dir, **k))
     summary = train(_config(tmp_path, "own-zoo", zoo_dir=zoo), show_progress=False)
     assert asked == [zoo] and summary["reference_returns"]["expert"] == real(point_data)["expert"]
+
+
+def _context_file(tmp_path, name="ctx.npz", c=4, **override):
+    arrays = {"observations": np.zeros((c, 2)), "actions": np.zeros((c, 2)), "rewards": np.zeros(c),
+              "next_observations": np.zeros((c, 2)), **override}
+    path = tmp_path / name
+    np.savez(path, **arrays)
+    return path
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda d: (d / "empty.npz").write_bytes(b"") or d / "empty.npz", "not a readable .npz context file"),
+    (lambda d: np.save(d / "one.npy", np.zeros(3)) or d / "one.npy", "one array (.npy), not an .npz context file"),
+    (lambda d: _context_file(d, rewards=np.zeros((4, 1))), "rewards has shape (4, 1); expected (C,)"),
+    (lambda d: _context_file(d, rewards=np.float64(1.0)), "rewards has shape (); expected (C,)"),
+    (lambda d: _context_file(d, c=0), "the context is empty (0 transitions)"),
+    (lambda d: _context_file(d, actions=np.zeros((3, 2))), "actions has shape (3, 2); expected (4, 2)"),
+    (lambda d: _context_file(d, actions=np.zeros((4, 2), complex)), "actions holds complex128 values"),
+    (lambda d: _context_file(d, observations=np.full((4, 2), 1e39)), "observations holds NaN or infinite values"),
+    (lambda d: _context_file(d, rewards=np.array(["a", "b", "c", "d"])), "rewards holds <U1 values"),
+])
+def test_a_bad_context_file_is_one_line_naming_the_file_and_the_array(tmp_path, make, message):
+    from bati.inference import InferenceError, read_context
+
+    path = make(tmp_path)
+    with pytest.raises(InferenceError, match=re.escape(message)) as caught:
+        read_context(path, obs_dim=2, action_dim=2)
+    assert str(path) in str(caught.value) and "\n" not in str(caught.value)
+    assert read_context(_context_file(tmp_path, "good.npz"), 2, 2)["rewards"].shape == (1, 4)

@@ -133,24 +133,37 @@ def novelty(run_dir: Path, repeats: int = 5, quantile: float = QUANTILE, seed: i
 
 def read_context(path: Path, obs_dim: int, action_dim: int) -> dict:
     """A context file: an .npz with observations (C, obs_dim), actions (C, action_dim), rewards (C,),
-    next_observations (C, obs_dim), C >= 1. One-line errors naming the file and the array."""
+    next_observations (C, obs_dim) of real numbers, C >= 1. One-line errors naming the file and the array."""
     try:
-        with np.load(path, allow_pickle=False) as saved:
-            arrays = {name: np.asarray(saved[name], np.float32) for name in TRANSITION_FIELDS if name in saved}
-    except (OSError, ValueError) as err:
-        raise InferenceError(f"{path}: not a readable .npz context file ({err})") from err
-    missing = [name for name in TRANSITION_FIELDS if name not in arrays]
+        saved = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as err:
+        raise InferenceError(f"{path}: not a readable .npz context file ({err or 'empty file'})") from err
+    if not isinstance(saved, np.lib.npyio.NpzFile):
+        raise InferenceError(f"{path}: one array (.npy), not an .npz context file of {', '.join(TRANSITION_FIELDS)}")
+    with saved:
+        raw = {name: saved[name] for name in TRANSITION_FIELDS if name in saved.files}
+    missing = [name for name in TRANSITION_FIELDS if name not in raw]
     if missing:
         raise InferenceError(f"{path} lacks {', '.join(missing)}; a context file holds {', '.join(TRANSITION_FIELDS)}")
-    length = arrays["rewards"].shape[0] if arrays["rewards"].ndim == 1 else -1
-    expected = {"observations": (length, obs_dim), "actions": (length, action_dim), "rewards": (length,),
+    for name, array in raw.items():
+        if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+            raise InferenceError(f"{path}: {name} holds {array.dtype} values; a context holds real numbers")
+    rewards = raw["rewards"]
+    if rewards.ndim != 1:
+        raise InferenceError(f"{path}: rewards has shape {rewards.shape}; expected (C,), one reward per transition")
+    length = rewards.shape[0]
+    if length < 1:
+        raise InferenceError(f"{path}: the context is empty (0 transitions); give C >= 1 transitions")
+    expected = {"observations": (length, obs_dim), "actions": (length, action_dim),
                 "next_observations": (length, obs_dim)}
     for name, shape in expected.items():
-        if length < 1 or arrays[name].shape != shape:
-            raise InferenceError(f"{path}: {name} has shape {arrays[name].shape}; expected {shape} "
-                                 f"(C transitions, C >= 1, from rewards' length)")
-        if not np.all(np.isfinite(arrays[name])):
-            raise InferenceError(f"{path}: {name} holds NaN or infinite values")
+        if raw[name].shape != shape:
+            raise InferenceError(f"{path}: {name} has shape {raw[name].shape}; expected {shape} (C = {length} "
+                                 "transitions, from rewards)")
+    arrays = {name: np.asarray(raw[name], np.float32) for name in TRANSITION_FIELDS}
+    for name, array in arrays.items():
+        if not np.all(np.isfinite(array)):
+            raise InferenceError(f"{path}: {name} holds NaN or infinite values (or values beyond float32's range)")
     return {name: jnp.asarray(a)[None] for name, a in arrays.items()}
 
 
@@ -166,6 +179,9 @@ def infer_context(run_dir: Path, context_file: Path, quantile: float = QUANTILE,
     best = int(np.argmin(scores))
     known = training_scores(run, repeats, min(int(context["rewards"].shape[1]), run.data.train.n_transitions))
     threshold = float(np.quantile(known, quantile))
+    if not np.isfinite(scores[best]):
+        raise InferenceError(f"{context_file}: its likelihood is zero under every training task (a score of "
+                             f"{scores[best]}): values far outside what the run was trained on")
     return {"run_dir": str(run.run_dir), "family": family.name, "method": run.config.method,
             "context_length": int(context["rewards"].shape[1]), "task_index": best,
             "task": run.data.train_tasks[best], "score": float(scores[best]), "threshold": threshold,
