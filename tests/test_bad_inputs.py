@@ -661,3 +661,19 @@ def test_kill_9_at_random_points_of_a_collection_then_recollect_gives_the_same_d
     assert store.verify_collection(killed)[0] == "ok"
     leftovers = [p.name for p in (tmp_path / "killed" / FAMILY).iterdir() if p.name != "quick-seed0-eps1"]
     assert leftovers == []  # no partial directory, no lock file
+
+
+def test_a_directory_that_is_not_writable_is_named_not_its_lock_file(tmp_path, monkeypatch):
+    import bati.io as io_module
+    from bati.errors import describe_os_error
+
+    def denied(path, what):
+        raise PermissionError(errno.EACCES, "Permission denied", str(path))
+
+    monkeypatch.setattr(io_module, "_acquire", denied)
+    run = tmp_path / "run"
+    run.mkdir()
+    with pytest.raises(PermissionError) as caught:
+        with hold_lock(run / LOCK_NAME, "the run directory"):
+            pass
+    assert describe_os_error(caught.value) == f"{run}: permission denied"

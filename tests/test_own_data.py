@@ -122,6 +122,10 @@ def test_returns_in_your_env_and_bati_infer_on_an_own_data_run(dataset, tmp_path
     assert main(["infer", "--run-dir", str(out), "--context", str(tmp_path / "context.npz")]) == 0
     inferred = json.loads(capsys.readouterr().out)
     assert inferred["family"] == "own" and inferred["task"] in data.train_tasks and inferred["context_length"] == 10
+    # `bati likelihood` compares p_train and p_test contexts of test tasks, which own data does not have
+    assert main(["likelihood", "--run-dir", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "trained on your own datasets" in err[0] and "unknown task family" not in err[0]
 
 
 class _NoLimit(gym.Env):  # spaces like GoalLine's, registered without a time limit
@@ -133,7 +137,13 @@ class _Wider(_NoLimit):  # observations of 2 numbers: not your data's
     observation_space = gym.spaces.Box(-2.0, 2.0, (2,), np.float32)
 
 
+class _BadReset(_NoLimit):  # spaces like your data's, but reset raises
+    def reset(self, *, seed=None, options=None):
+        raise RuntimeError("the simulator is not running")
+
+
 gym.register("BatiTestNoLimit-v0", entry_point=_NoLimit)
+gym.register("BatiTestBadReset-v0", entry_point=_BadReset, max_episode_steps=40)
 gym.register("BatiTestWider-v0", entry_point=_Wider, max_episode_steps=40)
 
 
@@ -142,6 +152,8 @@ gym.register("BatiTestWider-v0", entry_point=_Wider, max_episode_steps=40)
     (["--task-key", "goal", "--eval-env", "NoSuchEnv-v0"], "cannot be made"),
     (["--task-key", "goal", "--eval-env", "BatiTestNoLimit-v0"], "no time limit"),
     (["--task-key", "goal", "--eval-env", "BatiTestWider-v0"], "observations (2,)"),
+    (["--task-key", "goal", "--eval-env", "BatiTestBadReset-v0"], "failed to reset to your first task "
+                                                                   "(RuntimeError: the simulator is not running)"),
 ])
 def test_a_bad_eval_env_is_one_line_and_leaves_no_run(dataset, tmp_path, capsys, extra, message):
     out = tmp_path / "run"

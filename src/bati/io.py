@@ -242,6 +242,9 @@ def hold_lock(path: str | Path, what: str) -> Iterator[Path]:
     created = make_dirs(path.parent)
     try:
         fd = _acquire(path, what)
+    except PermissionError as err:  # name what cannot be written, not the lock beside it
+        remove_empty_dirs(created)
+        raise PermissionError(err.errno, err.strerror, str(path.parent)) from err
     except BaseException:
         remove_empty_dirs(created)
         raise

@@ -211,11 +211,18 @@ def own_env(config: TrainConfig, data) -> tuple:
     length = check_eval_env(config.eval_env, config.task_key)
     family = OwnFamily(config.context_length, config.eval_env, config.task_key)
     probe = family.make_env(data.train_tasks[0])
-    shapes = (probe.observation_space.shape, probe.action_space.shape)
-    probe.close()
-    if shapes != ((data.obs_dim,), (data.action_dim,)):
-        raise EnvError(f"--eval-env {config.eval_env!r} has observations {shapes[0]} and actions {shapes[1]}, but "
-                       f"your datasets have ({data.obs_dim},) and ({data.action_dim},)")
+    try:
+        shapes = (probe.observation_space.shape, probe.action_space.shape)
+        if shapes != ((data.obs_dim,), (data.action_dim,)):
+            raise EnvError(f"--eval-env {config.eval_env!r} has observations {shapes[0]} and actions {shapes[1]}, "
+                           f"but your datasets have ({data.obs_dim},) and ({data.action_dim},)")
+        try:  # once before any work: an env that cannot reset fails now, not at the first evaluation
+            probe.reset(seed=0)
+        except Exception as err:  # the user's env's own error
+            raise EnvError(f"--eval-env {config.eval_env!r} failed to reset to your first task "
+                           f"({type(err).__name__}: {err})") from err
+    finally:
+        probe.close()
     return family, length
 
 

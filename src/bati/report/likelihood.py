@@ -16,11 +16,15 @@ import numpy as np
 
 from bati.data import sample_contexts
 from bati.envs import get_family
-from bati.inference import load_run
+from bati.inference import InferenceError, load_run
+from bati.io import read_run_config
 from bati.methods.dynamics import context_nll_terms
 
 
 def likelihood_split(run_dir: Path, context_length: int = 200, seed: int = 0) -> dict:
+    if read_run_config(Path(run_dir)).get("datasets"):  # before loading anything
+        raise InferenceError(f"{run_dir} trained on your own datasets: they have no test tasks with p_train and "
+                             "p_test contexts, which this diagnostic compares (`bati infer` scores your contexts)")
     run = load_run(run_dir, calibrate=False)
     config, data, params = run.config, run.data, run.params
     model, table = run.method.model, run.method.task_latents(params)
