@@ -322,3 +322,17 @@ def test_settings_added_later_at_their_old_value_do_not_split_a_group(tmp_path):
     summary["config"]["family_version"] = 2  # another env version is another setting
     (newer / "eval.json").write_text(json.dumps(summary))
     assert len(group_runs(load_runs(tmp_path))) == 2
+
+
+def test_a_damaged_eval_json_is_skipped_by_name_and_never_wins_over_a_valid_duplicate(tmp_path):
+    from bati.report.runs import ReportWarning, load_runs
+
+    valid = write_run(tmp_path, "PointGoal", "bati", 0, -280.0, -300.0, 0.2, 0.3, subdir="b")
+    damaged = write_run(tmp_path, "PointGoal", "bati", 0, -280.0, -300.0, 0.2, 0.3, subdir="a")  # sorts first
+    for edit, why in (({"p_test_return": "abc"}, "p_test_return is 'abc'"), ({"curve": [1, 2]}, "its curve"),
+                      ({"p_train_return": None}, "p_train_return is None")):
+        summary = json.loads((valid / "eval.json").read_text()) | edit
+        (damaged / "eval.json").write_text(json.dumps(summary))
+        with pytest.warns(ReportWarning, match=f"skipping {damaged / 'eval.json'}: {why}"):
+            (run,) = load_runs(tmp_path)
+        assert run.path == valid / "eval.json"

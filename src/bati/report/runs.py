@@ -79,6 +79,16 @@ class RunResult:
         missing = [k for k in REQUIRED_KEYS if k not in raw]
         if missing:
             raise ValueError(f"missing key(s) {', '.join(missing)}")
+        for key in ("p_test_return", "p_train_return"):  # a damaged value must not stand in for a run
+            if isinstance(raw[key], bool) or not isinstance(raw[key], (int, float)) or not math.isfinite(raw[key]):
+                raise ValueError(f"{key} is {raw[key]!r}, not a finite number")
+        curve = raw.get("curve") or []
+        if not isinstance(curve, list) or not all(isinstance(p, dict) and isinstance(p.get("step"), int)
+                                                  for p in curve):
+            raise ValueError("its curve is not a list of evaluations with integer steps")
+        for key in ("p_test_task_returns", "p_train_task_returns"):
+            if not isinstance(raw.get(key) or [], list):
+                raise ValueError(f"{key} is not a list")
         refs = raw.get("reference_returns")
         if refs is not None:
             refs = {"random": _float(refs.get("random")), "expert": _float(refs.get("expert"))}
