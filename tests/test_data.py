@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import time
 from collections import Counter
@@ -21,6 +22,7 @@ from bati.data.batch import TaskData, ensure_family_data, load_family_data, samp
 from bati.data.collect import collect
 from bati.data.plan import make_plan, n_minority
 from bati.envs import get_family
+from bati.errors import BatiWarning
 from bati.io import git_commit
 
 FAMILY = "PointGoal"
@@ -513,3 +515,23 @@ def test_cli_collect_and_cache(tmp_path, capsys, monkeypatch):
     assert "most different" in capsys.readouterr().out
     assert os.path.isfile(tmp_path / "data" / FAMILY / "quick-seed2-eps1" / "manifest.json")
     assert load_family_data(FAMILY, seed=2).train.observations.shape == (20, 400, 2)
+
+
+def test_a_dataset_changed_after_its_array_cache_was_built_is_noticed(tiny_copy):
+    root = tiny_copy.parents[1]
+    load_family_data(FAMILY, root=root)  # builds arrays.npz
+    file = tiny_copy / "train-03-v0" / "data" / "main_data.hdf5"
+    content = bytearray(file.read_bytes())
+    content[-1] ^= 0xFF  # an edit of the same size, after the cache was built
+    file.write_bytes(bytes(content))
+    with pytest.warns(BatiWarning, match="was built from other files"):
+        with pytest.raises(store.DatasetError, match=re.escape(str(file))):
+            load_family_data(FAMILY, root=root)
+
+
+def test_a_collection_of_another_env_shape_is_not_already_collected(tiny_copy):
+    manifest = json.loads((tiny_copy / "manifest.json").read_text())
+    manifest["obs_dim"] = 3  # the env's observations changed since (without a version bump)
+    (tiny_copy / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(store.DatasetError, match="obs_dim/action_dim 3/2 do not match the PointGoal env's 2/2"):
+        tiny(tiny_copy.parents[1])

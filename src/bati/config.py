@@ -10,11 +10,11 @@ run directories) unchanged for configs that older versions could express.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
+from bati.checks import check_hidden_dims, check_integer, check_number
 from bati.data.own import OWN_FAMILY
 from bati.envs import TaskSplit
 from bati.io import read_run_config
@@ -231,18 +231,13 @@ class TrainConfig:
         scale = get_scale(self.scale)
         for setting in ("steps", "task_batch", "batch_size", "context_length", "eval_context_length", "eval_every",
                         "checkpoint_every", "log_every", "episodes_per_task", "context_episodes"):
-            value = getattr(self, setting)
-            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-                raise ValueError(f"{setting} must be an integer >= 1, got {value!r}")
-            if value is not None and value > MAX_COUNT:
-                raise ValueError(f"{setting} must be at most {MAX_COUNT:,}, got {value:,}")
+            if getattr(self, setting) is not None:  # None: the default; 0 is refused, never the default
+                check_integer(setting, getattr(self, setting))
         for setting in ("seed", "data_seed"):
-            if not isinstance(getattr(self, setting), int) or getattr(self, setting) < 0:
-                raise ValueError(f"{setting} must be an integer >= 0, got {getattr(self, setting)!r}")
+            check_integer(setting, getattr(self, setting), low=0)
         for setting, value in (("learning_rate", self.learning_rate), ("iql.learning_rate", self.iql.learning_rate),
                                ("iql.temperature", self.iql.temperature)):
-            if not (isinstance(value, (int, float)) and value > 0 and math.isfinite(value)):
-                raise ValueError(f"{setting} must be a finite number > 0, got {value!r}")
+            check_number(setting, value)
         check_sinks(self.log_to)  # an unknown sink, or its package missing: before any work
         section = self.method_config()
         if hasattr(section, "check"):
@@ -252,10 +247,8 @@ class TrainConfig:
             layers |= {f"{method_config_key(self.method)}.{f.name}": getattr(section, f.name) for f in fields(section)
                        if f.name.endswith("hidden_dims")}
         for setting, dims in layers.items():
-            if dims is not None and not (isinstance(dims, (tuple, list)) and dims and all(
-                    isinstance(d, int) and not isinstance(d, bool) and d >= 1 for d in dims)):
-                raise ValueError(f"{setting} must be one or more integers >= 1 (the hidden layers' sizes), "
-                                 f"got {dims!r}")
+            if dims is not None:
+                check_hidden_dims(setting, dims)
         pick = lambda value, default: default if value is None else value  # noqa: E731
         steps = pick(self.steps, scale.steps)
         tenth = max(self.log_every, (steps // 10) // self.log_every * self.log_every)
@@ -380,8 +373,6 @@ def _dataclass_from(cls, values: dict):
     return cls(**{k: _tuples(v) for k, v in values.items() if k in names})
 
 
-MAX_COUNT = 10**9
-"""The largest step count, batch size or length a config accepts (beyond it: a typo, not a plan)."""
 # Keys a config.json holds that are not TrainConfig fields: what the run recorded about itself, and old names.
 RECORD_ONLY = frozenset({"runtime", "family_version", "rl_hidden_dims"})
 

@@ -198,15 +198,7 @@ def load_family_data(
     manifest = store.read_manifest(path, fam, scale, seed, noise, root, tasks)
     redo = store.collect_command(fam, scale, seed, noise, root, tasks)
     store.require_intact(path, manifest, redo)  # sizes only (a stat per file): a truncated or missing file
-    probe = fam.make_env(manifest["train_tasks"][0], noise)
-    obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
-    probe.close()
-    if (manifest.get("obs_dim"), manifest.get("action_dim")) != (obs_dim, action_dim):
-        raise store.DatasetError(
-            f"{path / store.MANIFEST}: obs_dim/action_dim "
-            f"{manifest.get('obs_dim')}/{manifest.get('action_dim')} do not match the {family} env's "
-            f"{obs_dim}/{action_dim}; re-collect the data"
-        )
+    obs_dim, action_dim = store.require_env_dims(path, manifest, fam, noise)
     length = int(manifest.get("episode_length", EPISODE_LENGTH))
 
     arrays = _load_cache(path, manifest, obs_dim, action_dim) if cache else None
@@ -216,7 +208,9 @@ def load_family_data(
         if cache:
             try:
                 collection_id = np.array(manifest["collection_id"])
-                store.save_npz(path / store.ARRAY_CACHE, {"collection_id": collection_id, **arrays})
+                stamps = np.array(store.file_stamps(path, manifest))
+                store.save_npz(path / store.ARRAY_CACHE, {"collection_id": collection_id, "source_stamps": stamps,
+                                                          **arrays})
             except OSError as err:  # a read-only data directory is fine
                 warnings.warn(f"could not write the array cache {path / store.ARRAY_CACHE}: {err}", BatiWarning)
 
@@ -312,7 +306,13 @@ def _load_cache(path: Path, manifest: dict, obs_dim: int, action_dim: int) -> di
         with np.load(file) as npz:
             if str(npz["collection_id"]) != manifest["collection_id"]:
                 return None
-            arrays = {key: npz[key] for key in npz.files if key != "collection_id"}
+            if store.has_checksums(manifest) and ("source_stamps" not in npz.files
+                                                  or str(npz["source_stamps"]) != store.file_stamps(path, manifest)):
+                warnings.warn(f"{file} was built from other files than {path} holds now (a dataset changed, or "
+                              "the cache predates this check); rebuilding it after checking every file",
+                              BatiWarning)
+                return None
+            arrays = {key: npz[key] for key in npz.files if key not in ("collection_id", "source_stamps")}
     except Exception as err:  # damaged cache (zip CRCs catch edits): rebuild it from the Minari datasets
         warnings.warn(f"{file} is damaged ({type(err).__name__}: {err}); rebuilding it from the datasets",
                       BatiWarning)

@@ -246,6 +246,7 @@ def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episode
     if not (target / store.MANIFEST).is_file():
         return None
     manifest = store.read_manifest(target, fam, scale, seed, noise, root, tasks)
+    store.require_env_dims(target, manifest, fam, noise)  # the env changed since: not "already collected"
     sizes = (manifest.get("n_episodes"), manifest.get("n_context_episodes"))
     if sizes != (n_episodes, n_context_episodes):
         raise ValueError(

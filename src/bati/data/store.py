@@ -196,6 +196,33 @@ def file_problems(path: Path, manifest: dict, *, checksums: bool) -> list[str]:
     return problems
 
 
+def file_stamps(path: Path, manifest: dict) -> str:
+    """The size and modification time of each of the collection's files, as one JSON string: what a cache
+    built from them records, so that a file changed afterwards (even to the same size) is noticed."""
+    stamps = {}
+    for rel in sorted(manifest.get("files") or {}):
+        try:
+            stat = (path / rel).stat()
+        except OSError:
+            stamps[rel] = None
+        else:
+            stamps[rel] = [stat.st_size, stat.st_mtime_ns]
+    return json.dumps(stamps, sort_keys=True)
+
+
+def require_env_dims(path: Path, manifest: dict, family: TaskFamily, noise: float) -> tuple[int, int]:
+    """The family's env's (obs_dim, action_dim); DatasetError when the collection recorded others (the env
+    changed after it was collected without a version bump)."""
+    probe = family.make_env(manifest["train_tasks"][0], noise)
+    dims = probe.observation_space.shape[0], probe.action_space.shape[0]
+    probe.close()
+    if (manifest.get("obs_dim"), manifest.get("action_dim")) != dims:
+        raise DatasetError(f"{path / MANIFEST}: obs_dim/action_dim {manifest.get('obs_dim')}/"
+                           f"{manifest.get('action_dim')} do not match the {family.name} env's {dims[0]}/{dims[1]}; "
+                           f"delete {path} and re-collect the data")
+    return dims
+
+
 def require_intact(path: Path, manifest: dict, redo: str, *, checksums: bool = False) -> None:
     """DatasetError (one line naming the first damaged file) unless the collection's files are as
     written; `redo` is the command that rebuilds it."""

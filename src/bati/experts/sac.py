@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import optax
 from flax.training.train_state import TrainState
 
+from bati.checks import check_hidden_dims, check_integer, check_number
 from bati.nets import CriticState, DoubleCritic, GaussianHead
 
 
@@ -27,6 +28,15 @@ class SACConfig:
     tau: float = 0.005
     batch_size: int = 256
     init_temperature: float = 1.0
+
+    def check(self) -> None:
+        """ValueError (one line naming the setting, as `--sac.NAME`) for a value SAC cannot train with."""
+        check_hidden_dims("sac.hidden_dims", self.hidden_dims)
+        check_integer("sac.batch_size", self.batch_size)
+        for name in ("learning_rate", "init_temperature"):
+            check_number(f"sac.{name}", getattr(self, name))
+        for name in ("discount", "tau"):
+            check_number(f"sac.{name}", getattr(self, name), at_most=1.0)
 
 
 class SACState(NamedTuple):

@@ -17,12 +17,16 @@ import jax
 import numpy as np
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from bati.checks import check_integer, check_number
 from bati.envs import get_family
 from bati.envs.rollout import LockstepEnvs, rollout
 from bati.experts.sac import SAC, SACConfig, state_from_bytes, state_to_bytes
 from bati.experts.zoo import save_expert
 from bati.io import append_jsonl, atomic_save_npz, check_run_config
 
+
+MAX_UPDATES_PER_STEP = 1_000.0
+"""More SAC updates per transition than this is a typo, not a plan (the default is 0.5)."""
 
 
 @dataclass
@@ -56,12 +60,13 @@ class ExpertTrainConfig:
             raise ValueError(f"{self.family}'s expert is not a SAC (KuhnPoker: the exact best response, "
                              "bati.experts.kuhn, computed when needed): there is no SAC expert to train")
         for name in ("total_steps", "num_envs", "checkpoint_every", "eval_every", "eval_tasks"):
-            value = getattr(self, name)
-            if value is not None and (not isinstance(value, int) or isinstance(value, bool) or value < 1):
-                hint = f" (leave it out for the family's {record.expert_steps:,})" if name == "total_steps" else ""
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}{hint}")
-        if self.updates_per_step < 0 or self.start_steps < 0:
-            raise ValueError("updates_per_step and start_steps must be >= 0")
+            hint = f" (leave it out for the family's {record.expert_steps:,})" if name == "total_steps" else ""
+            if getattr(self, name) is not None:  # None: the default; 0 is refused, never the default
+                check_integer(name, getattr(self, name), hint=hint)
+        for name in ("start_steps", "seed"):
+            check_integer(name, getattr(self, name), low=0)
+        check_number("updates_per_step", self.updates_per_step, positive=False, at_most=MAX_UPDATES_PER_STEP)
+        self.sac.check()
         if self.into_package and self.export_dir is not None:
             raise ValueError("give either --export-dir or --into-package, not both")
         out = self.out_dir or Path("runs/experts") / self.family
