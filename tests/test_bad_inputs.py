@@ -264,6 +264,17 @@ def empty_zoo(env: Env, patch, stack) -> None:
     (env.tmp / "zoo").mkdir()
 
 
+def context_file(name: str, length: int = 4, **arrays) -> Callable:
+    """A `bati infer` context file of PointGoal's sizes (length transitions), some arrays replaced."""
+
+    def setup(env: Env, patch, stack) -> None:
+        fields = {"observations": np.zeros((length, 2)), "actions": np.zeros((length, 2)),
+                  "rewards": np.zeros(length), "next_observations": np.zeros((length, 2)), **arrays}
+        np.savez(env.tmp / name, **fields)
+
+    return setup
+
+
 # --- the catalogue -------------------------------------------------------------------------------
 @dataclass
 class Case:
@@ -343,6 +354,24 @@ CASES = [
          2, ("workers=0",)),
     Case("sweep: unknown setting", lambda e: ["sweep", "--settings", "stepz=3", "--out-dir", e.tmp / "sweep"], 2,
          ("unknown setting 'stepz'",)),
+    Case("sweep: iql.hidden_dims=[-5]", lambda e: ["sweep", "--settings", "iql.hidden_dims=[-5]", "--out-dir",
+                                                    e.tmp / "sweep", "--data-root", e.data], 2,
+         ("iql.hidden_dims must be one or more integers >= 1", "(-5,)")),
+    Case("collect --seed -1", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh, "--seed", "-1"], 2,
+         ("seed must be an integer >= 0, got -1",)),
+    Case("run --steps 0 (before the data)", lambda e: ["run", "--steps", "0", "--data-root", e.fresh, "--out-dir",
+                                                        e.tmp / "new"], 2, ("steps must be an integer >= 1, got 0",)),
+    Case("run --out-dir is a file", lambda e: ["run", "--data-root", e.fresh, "--out-dir", e.tmp / "a_file"], 2,
+         ("the experiment directory", "a_file is a file")),
+    Case("experts train --total-steps 0", lambda e: ["experts", "train", "--family", FAMILY, "--total-steps", "0",
+                                                      "--out-dir", e.tmp / "expert"], 2,
+         ("total_steps must be an integer >= 1, got 0", "the family's 20,000")),
+    Case("experts train --sac.hidden-dims 0", lambda e: ["experts", "train", "--family", FAMILY, "--sac.hidden-dims",
+                                                          "0", "--out-dir", e.tmp / "expert"], 2,
+         ("sac.hidden_dims must be one or more integers >= 1", "(0,)")),
+    Case("experts train --export-dir is a file", lambda e: ["experts", "train", "--family", FAMILY, "--export-dir",
+                                                             e.tmp / "a_file", "--out-dir", e.tmp / "expert"], 2,
+         ("the zoo directory", "a_file is a file")),
     # --- paths and the OS
     Case("out-dir is a file", lambda e: [*TRAIN, "--data-root", e.data, "--out-dir", e.tmp / "a_file"], 2,
          ("the run directory", "a_file is a file")),
@@ -368,6 +397,12 @@ CASES = [
          ("is not a run directory", "no config.json")),
     Case("likelihood on config.json []", lambda e: ["likelihood", "--run-dir", e.run], 2,
          ("config.json holds a JSON list",), setup=write("config.json", "[]")),
+    Case("infer: an empty context file", lambda e: ["infer", "--run-dir", e.run, "--context", e.tmp / "c.npz"], 2,
+         ("c.npz: not a readable .npz context file",), setup=write("c.npz", b"", where="tmp")),
+    Case("infer: rewards of shape (C, 1)", lambda e: ["infer", "--run-dir", e.run, "--context", e.tmp / "c.npz"], 2,
+         ("c.npz: rewards has shape (4, 1); expected (C,)",), setup=context_file("c.npz", rewards=np.zeros((4, 1)))),
+    Case("infer: complex actions", lambda e: ["infer", "--run-dir", e.run, "--context", e.tmp / "c.npz"], 2,
+         ("c.npz: actions holds complex128 values",), setup=context_file("c.npz", actions=np.zeros((4, 2), complex))),
     Case("no expert to collect with", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh, "--zoo-dir",
                                                  e.tmp / "zoo"], 2, ("no expert for PointGoal",), setup=empty_zoo),
     Case("sweep out-dir is a file", lambda e: ["sweep", "--out-dir", e.tmp / "a_file"], 2, ("a_file is a file",)),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import jax
 import numpy as np
 import pytest
@@ -76,6 +78,13 @@ def test_missing_expert_and_mismatched_run_directory_are_clear_errors(tmp_path, 
                                export_dir=tmp_path, **SMALL)
     with pytest.raises(ValueError, match="seed: 0 there, 3 now"):
         train_expert(config, show_progress=False)
+    from bati.experts.sac import SACConfig
+
+    other_nets = ExpertTrainConfig("PointGoal", total_steps=1200, out_dir=trained / "straight", export_dir=tmp_path,
+                                   sac=SACConfig(hidden_dims=(8,)), **SMALL)
+    with pytest.raises(ValueError, match="another config .*sac: "):  # it resumed the old nets as new sizes
+        train_expert(other_nets, show_progress=False)
+    assert not (tmp_path / "PointGoal").exists()
 
 
 def test_shipped_experts_load():
@@ -115,16 +124,47 @@ def test_an_expert_is_exported_into_its_run_directory_unless_the_package_is_aske
     ({"num_envs": 0}, "num_envs must be an integer >= 1"),
     ({"eval_every": 0}, "eval_every must be an integer >= 1"),
     ({"into_package": True, "export_dir": "zoo"}, "either --export-dir or --into-package"),
+    ({"total_steps": 10**20}, "total_steps must be at most 1,000,000,000"),
+    ({"seed": -1}, "seed must be an integer >= 0, got -1"),
+    ({"updates_per_step": float("nan")}, "updates_per_step must be a finite number >= 0"),
+    ({"sac.batch_size": 0}, "sac.batch_size must be an integer >= 1, got 0"),
+    ({"sac.hidden_dims": (0,)}, "sac.hidden_dims must be one or more integers >= 1 (the hidden layers' sizes), got (0,)"),
+    ({"sac.hidden_dims": ()}, "sac.hidden_dims must be one or more integers >= 1"),
+    ({"sac.discount": 2.0}, "sac.discount must be a finite number > 0 and at most 1"),
 ])
 def test_bad_expert_settings_are_refused_before_any_work(tmp_path, settings, message, capsys):
     from bati.cli import main
 
-    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
-        ExpertTrainConfig("PointGoal", out_dir=tmp_path / "run", **settings).resolved()
+    from bati.experts.sac import SACConfig
+
+    plain = {k: v for k, v in settings.items() if "." not in k}
+    sac = SACConfig(**{k.split(".")[1]: v for k, v in settings.items() if "." in k})
+    with pytest.raises(ValueError, match=re.escape(message)):
+        ExpertTrainConfig("PointGoal", out_dir=tmp_path / "run", sac=sac, **plain).resolved()
     args = ["experts", "train", "--family", "PointGoal", "--out-dir", str(tmp_path / "run")]
     for key, value in settings.items():
-        args += [f"--{key.replace('_', '-')}"] if value is True else [f"--{key.replace('_', '-')}", str(value)]
+        values = [] if value is True else list(map(str, value)) if isinstance(value, tuple) else [str(value)]
+        args += [f"--{key.replace('_', '-')}", *values]
     assert main(args) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(err) == 1 and message in err[0]
     assert not (tmp_path / "run").exists()
+
+
+def test_experts_train_leaves_the_package_zoo_as_it_was_unless_asked(trained, tmp_path, capsys):
+    """A run (a few more steps of the tiny one) exports into its own directory's zoo/; the shipped experts
+    are byte for byte what they were (it once trained 20,000 steps into the package for --total-steps 0)."""
+    import shutil
+
+    from bati.cli import main
+    from bati.experts.zoo import ZOO_DIR
+
+    shipped = {p: p.read_bytes() for p in sorted(ZOO_DIR.rglob("*")) if p.is_file()}
+    run = tmp_path / "run"
+    shutil.copytree(trained / "straight", run)
+    options = [f"--{k.replace('_', '-')}={v}" for k, v in SMALL.items()]
+    assert main(["experts", "train", "--family", "PointGoal", "--total-steps", "1200", "--out-dir", str(run),
+                 *options]) == 0
+    assert f"exported to {run / 'zoo'}" in " ".join(capsys.readouterr().out.split())
+    assert load("PointGoal", run / "zoo").meta["train_steps"] == 1200
+    assert {p: p.read_bytes() for p in sorted(ZOO_DIR.rglob("*")) if p.is_file()} == shipped

@@ -167,3 +167,37 @@ def test_a_bad_eval_env_is_one_line_and_leaves_no_run(dataset, tmp_path, capsys,
 def test_eval_env_is_for_own_data_only(capsys):
     assert main(["train", "--family", "PointGoal", "--eval-env", "GoalLine-v0"]) == 2
     assert "--eval-env is your own data's env" in capsys.readouterr().err
+
+
+def _edit_episode(dataset: str, edit) -> None:
+    import h5py
+
+    with h5py.File(Path(dataset) / "data" / "main_data.hdf5", "a") as f:
+        edit(f["episode_0"])
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda ep: ep["observations"].__setitem__((3, 0), np.nan), "episode 0: observations holds NaN or infinite"),
+    (lambda ep: ep["rewards"].__setitem__(2, np.inf), "episode 0: rewards holds NaN or infinite"),
+    (lambda ep: ep.__delitem__("rewards"), "episode 0 cannot be read"),
+])
+def test_a_damaged_episode_is_one_line_naming_the_dataset_and_the_episode(dataset, edit, message):
+    _edit_episode(dataset, edit)
+    with pytest.raises(DatasetError) as caught:
+        load_own_data((dataset,), "goal", segment_length=10, held_out=0.25)
+    assert message in str(caught.value) and dataset in str(caught.value)
+
+
+def test_a_run_refuses_to_resume_on_edited_datasets(dataset, tmp_path, capsys):
+    out = tmp_path / "run"
+    args = ["train", "--datasets", dataset, "--task-key", "goal", "--context-length", "10", "--task-batch", "4",
+            "--batch-size", "16", "--steps", "4", "--eval-every", "2", "--log-every", "2", "--iql.hidden-dims", "8",
+            "--out-dir", str(out)]
+    assert main(args) == 0, capsys.readouterr().err
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    _edit_episode(dataset, lambda ep: ep["rewards"].__setitem__(0, ep["rewards"][0] + 1.0))
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "changed since this run started" in err[0], err
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before  # nothing touched

@@ -9,6 +9,7 @@ A run directory holds config.json, metrics.jsonl, eval.jsonl, checkpoint.msgpack
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
 import platform
@@ -24,7 +25,7 @@ import numpy as np
 import optax
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from bati.config import LATER_FIELDS, NOT_IDENTITY, TrainConfig, differing_settings, family_of
+from bati.config import NOT_IDENTITY, TrainConfig, differing_settings, family_of
 from bati.data import FamilyData, ensure_family_data, sample_batch, sample_contexts
 from bati.data.batch import TRANSITION_FIELDS
 from bati.data.own import load_own_data
@@ -49,8 +50,7 @@ from bati.methods import MethodSpec, make_method
 from bati.rl.iql import IQL, IQLState, upgrade_checkpoint
 from bati.sinks import open_sinks
 
-__all__ = ["LATER_FIELDS", "NOT_IDENTITY", "TrainConfig", "Trainer", "TrainingError", "differing_settings", "train",
-           "train_seeds"]
+__all__ = ["Trainer", "TrainingError", "train", "train_seeds"]
 
 class TrainingError(BatiError, RuntimeError):
     """Training cannot go on (e.g. a NaN loss); earlier checkpoints are left untouched."""
@@ -196,8 +196,9 @@ def _forgotten_unless_started(out: Path):
         yield
     except BaseException:
         left = {p.name for p in out.iterdir()} if out.is_dir() else set()
-        if fresh and left <= {"config.json", LOCK_NAME}:
+        if fresh and left <= {"config.json", DATASETS_RECORD, LOCK_NAME}:
             (out / "config.json").unlink(missing_ok=True)
+            (out / DATASETS_RECORD).unlink(missing_ok=True)
         raise
 
 
@@ -226,6 +227,23 @@ def own_env(config: TrainConfig, data) -> tuple:
     return family, length
 
 
+DATASETS_RECORD = "datasets.json"
+
+
+def _check_datasets_unchanged(out: Path, fingerprint: dict[str, str]) -> None:
+    """Record your datasets' sha256 with the run (datasets.json) or, when it has them, refuse to go on if
+    they changed since: a resumed run would train on two versions of its data."""
+    path = out / DATASETS_RECORD
+    if path.is_file():
+        recorded = json.loads(path.read_text())
+        changed = sorted(d for d in set(recorded) | set(fingerprint) if recorded.get(d) != fingerprint.get(d))
+        if changed:
+            raise TrainingError(f"{out}: your dataset(s) {', '.join(changed)} changed since this run started "
+                                f"(sha256 in {path}); restore them or train into another --out-dir")
+        return
+    atomic_write_json(path, fingerprint)
+
+
 def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict]:
     """train_seeds once its run directories are checked, claimed and locked."""
     config, seeds = configs[0], [c.seed for c in configs]
@@ -243,6 +261,8 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict
     trainer = Trainer(config, data)
     if config.datasets:
         evaluator = OfflineEvaluator(trainer, data, config.eval_context_length, *own_env(config, data))
+        for c in configs:  # the data a run started on is the data it resumes on
+            _check_datasets_unchanged(Path(c.out_dir), data.manifest["fingerprint"])
     else:
         evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length)
     runs = [_SeedRun.open(c, trainer) for c in configs]

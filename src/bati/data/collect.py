@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from bati.checks import check_integer
 from bati.data import store
 from bati.data.plan import OTHER_FRACTION, PLAN_STREAM, DatasetPlan, Plan, make_plan
 from bati.envs import FAMILY_NAMES, TaskFamily, TaskSplit, get_family
@@ -97,6 +98,7 @@ def collect(
     """
     start = time.perf_counter()
     workers = check_workers(workers)
+    check_integer("seed", seed, low=0)  # a negative seed: one line now, not numpy's after the plan
     fam = get_family(family)
     check_supported(fam)
     noise = fam.validate_noise(noise)

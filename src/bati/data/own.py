@@ -150,6 +150,54 @@ def _task_label(options: dict, task_key: str, dataset: str, episode: int):
     return json.dumps(options[task_key], sort_keys=True, default=str)
 
 
+EPISODE_FIELDS = ("observations", "actions", "rewards", "terminations")
+
+
+def _checked_episode(episode, dataset: str, index: int, spaces: tuple) -> dict:
+    """One episode's arrays, or DatasetError naming the dataset and the episode: every field present, T >= 1
+    transitions with T + 1 observations, the dataset's shapes, finite numbers."""
+    where = f"{dataset}: episode {index}"
+    try:
+        raw = {name: np.asarray(episode[name]) for name in EPISODE_FIELDS}
+    except (KeyError, TypeError) as err:
+        raise DatasetError(f"{where} lacks {err} (an episode holds {', '.join(EPISODE_FIELDS)})") from err
+    steps = raw["actions"].shape[0] if raw["actions"].ndim else 0
+    expected = {"observations": (steps + 1,) + spaces[0], "actions": (steps,) + spaces[1],
+                "rewards": (steps,), "terminations": (steps,)}
+    for name, shape in expected.items():
+        if raw[name].reshape(-1).shape == (steps,) and name in ("rewards", "terminations"):
+            continue  # (T,) or (T, 1)
+        if raw[name].shape != shape:
+            raise DatasetError(f"{where}: {name} has shape {raw[name].shape}, expected {shape} ({steps} transitions; "
+                               "a truncated or short episode?)")
+    if steps < 1:
+        raise DatasetError(f"{where} has no transitions")
+    arrays = {"observations": raw["observations"].astype(np.float32), "actions": raw["actions"].astype(np.float32),
+              "rewards": raw["rewards"].astype(np.float32).reshape(-1),
+              "terminations": raw["terminations"].astype(bool).reshape(-1)}
+    for name in ("observations", "actions", "rewards"):
+        if not np.all(np.isfinite(arrays[name])):
+            raise DatasetError(f"{where}: {name} holds NaN or infinite values")
+    return arrays
+
+
+def dataset_fingerprint(datasets: tuple[str, ...]) -> dict[str, str]:
+    """Each dataset's sha256 over its files (names and bytes): what a run on it records, so that a dataset
+    edited before a resume is noticed."""
+    import hashlib
+
+    prints = {}
+    for dataset in dict.fromkeys(datasets):
+        digest, root = hashlib.sha256(), dataset_path(dataset)
+        for file in sorted(p for p in root.rglob("*") if p.is_file()):
+            digest.update(str(file.relative_to(root)).encode())
+            with open(file, "rb") as f:
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    digest.update(block)
+        prints[dataset] = digest.hexdigest()
+    return prints
+
+
 def read_episodes(datasets: tuple[str, ...], task_key: str | None) -> tuple[list[str], list[list[dict]]]:
     """(task labels, per task its episodes as dicts of arrays), tasks in a stable order."""
     if not datasets:
@@ -168,14 +216,19 @@ def read_episodes(datasets: tuple[str, ...], task_key: str | None) -> tuple[list
         shapes = spaces
         indices = range(storage.total_episodes)
         metadata = list(storage.get_episode_metadata(indices))
-        for e, (episode, meta) in enumerate(zip(storage.get_episodes(indices), metadata)):
+        try:
+            episodes = list(storage.get_episodes(indices))
+        except Exception as err:  # a truncated or damaged file, a missing field: name the episode
+            for index in indices:
+                try:
+                    list(storage.get_episodes([index]))
+                except Exception as one:
+                    raise DatasetError(f"{dataset}: episode {index} cannot be read ({type(one).__name__}: "
+                                       f"{one})") from one
+            raise DatasetError(f"{dataset}: its episodes cannot be read ({type(err).__name__}: {err})") from err
+        for e, (episode, meta) in enumerate(zip(episodes, metadata)):
             label = dataset if task_key is None else _task_label(meta.get("options") or {}, task_key, dataset, e)
-            grouped.setdefault(label, []).append({
-                "observations": np.asarray(episode["observations"], np.float32),
-                "actions": np.asarray(episode["actions"], np.float32),
-                "rewards": np.asarray(episode["rewards"], np.float32).reshape(-1),
-                "terminations": np.asarray(episode["terminations"], bool).reshape(-1),
-            })
+            grouped.setdefault(label, []).append(_checked_episode(episode, dataset, e, spaces))
     labels = sorted(grouped) if task_key is not None else list(grouped)
     if len(labels) < 2:
         raise DatasetError(f"{len(labels)} task in {', '.join(datasets)}: task inference needs at least 2 tasks "
@@ -230,7 +283,8 @@ def load_own_data(datasets: tuple[str, ...], task_key: str | None, segment_lengt
     obs_dim, action_dim = train_parts[0]["observations"].shape[-1], train_parts[0]["actions"].shape[-1]
     n_tasks = len(labels)
     task_arrays = np.eye(n_tasks, dtype=np.float32)
-    manifest = {"datasets": list(datasets), "task_key": task_key, "segment_length": segment_length,
+    manifest = {"datasets": list(datasets), "fingerprint": dataset_fingerprint(tuple(datasets)),
+                "task_key": task_key, "segment_length": segment_length,
                 "held_out": held_out, **report, "transitions": report["transitions_kept"],
                 "n_episodes": None, "n_context_episodes": None}
     return OwnData(

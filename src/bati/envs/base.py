@@ -16,6 +16,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from bati.checks import check_integer
+
 EPISODE_LENGTH = 200
 
 Task = Any  # float for scalar families, list[float] for vector tasks
@@ -236,9 +238,7 @@ class TaskSplit:
     def checked(self, family: TaskFamily) -> TaskSplit:
         """This split with ranges as float pairs, or TaskError (one line) for a bad one."""
         for name in ("n_train", "n_test"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise TaskError(f"{name} must be an integer >= 1, got {value!r}")
+            check_integer(name, getattr(self, name), error=TaskError)
         if self.n_train < 2:
             raise TaskError(f"n_train={self.n_train}: Eq. 9 needs at least 2 training tasks")
         ranges = {name: None if getattr(self, name) is None else check_parameter_range(family, getattr(self, name))

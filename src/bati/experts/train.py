@@ -22,7 +22,7 @@ from bati.envs import get_family
 from bati.envs.rollout import LockstepEnvs, rollout
 from bati.experts.sac import SAC, SACConfig, state_from_bytes, state_to_bytes
 from bati.experts.zoo import save_expert
-from bati.io import append_jsonl, atomic_save_npz, check_run_config
+from bati.io import append_jsonl, atomic_save_npz, check_directory, check_run_config
 
 
 MAX_UPDATES_PER_STEP = 1_000.0
@@ -111,6 +111,8 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
     config = config.resolved()
     family = get_family(config.family)
     out: Path = config.out_dir
+    check_directory(out, "the expert's run directory")  # a file, or not writable: now, not after training
+    check_directory(config.export_dir / config.family, "the zoo directory")
     probe = family.make_env(family.sample_tasks(1, seed=0)[0], noise=0.0)
     obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
     sac = SAC(obs_dim, family.task_dim, action_dim, config.sac)
@@ -194,10 +196,14 @@ def _default_zoo() -> Path:
     return ZOO_DIR
 
 
+RESUME_IDENTITY = ("family", "seed", "num_envs", "updates_per_step", "start_steps", "sac")
+"""What a resumed expert run must share with the run in its directory (total_steps may grow)."""
+
+
 def _check_config(out: Path, config: ExpertTrainConfig) -> None:
-    """Refuse to resume a run directory written with another family, seed or env count."""
+    """Refuse to resume a run directory written with another family, seed, env count or SAC setting."""
     current = json.loads(json.dumps(asdict(config), default=str))
-    check_run_config(out / "config.json", current, ("family", "seed", "num_envs"))
+    check_run_config(out / "config.json", current, RESUME_IDENTITY)
 
 
 def _save_checkpoint(out: Path, state, key, rng, episode, buffer, wall_time: float) -> None:
