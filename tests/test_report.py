@@ -336,3 +336,29 @@ def test_a_damaged_eval_json_is_skipped_by_name_and_never_wins_over_a_valid_dupl
         with pytest.warns(ReportWarning, match=f"skipping {damaged / 'eval.json'}: {why}"):
             (run,) = load_runs(tmp_path)
         assert run.path == valid / "eval.json"
+
+
+def test_a_full_disk_names_the_report_directory_and_keeps_the_previous_report(results, tmp_path, monkeypatch, capsys):
+    import errno
+    import os
+
+    import bati.report.build as build_module
+
+    out = tmp_path / "report-out"
+    assert main(["report", str(results), "--out-dir", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    real, calls = build_module.atomic_write_text, []
+
+    def full_disk(path, text):
+        calls.append(path)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        return real(path, text)
+
+    monkeypatch.setattr(build_module, "atomic_write_text", full_disk)
+    capsys.readouterr()
+    assert main(["report", str(results), "--out-dir", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: {out}: no space left on device"]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # the previous report, whole
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no staging left

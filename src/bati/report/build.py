@@ -12,14 +12,17 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 import re
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from bati.errors import BatiError
-from bati.io import atomic_write_text
+from bati.io import atomic_write_text, make_dirs
 from bati.report.runs import RunResult, find_eval_files, load_runs
 from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval, performance_profile, require_rliable
 from bati.report.curves import save_figure
@@ -490,6 +493,29 @@ def build_report(results_dir: Path, out_dir: Path | None = None, reps: int = BOO
         raise BatiError(f"no readable eval.json under {results_dir} "
                         "(every one was skipped, see the warnings)")
     out = Path(out_dir) if out_dir is not None else results_dir / "report"
+    make_dirs(out.parent)
+    # Everything is written into a staging directory first and moved into `out` file by file at the end, so
+    # a full disk or an error leaves the previous report as it was, and the error names `out`.
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}-", dir=out.parent))
+    try:
+        report_md, tables, files = _write_report(runs, results_dir, staging, reps, seed)
+        out.mkdir(parents=True, exist_ok=True)
+        for file in sorted(staging.iterdir()):
+            os.replace(file, out / file.name)
+    except OSError as err:
+        raise OSError(err.errno, err.strerror, str(out)) from err
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    for entry in tables:
+        for key in ("csv", "curves", "inference_curves", "profile"):
+            if entry.get(key) is not None:
+                entry[key] = out / entry[key].name
+    files = [out / f.name for f in files]
+    return {"out_dir": out, "markdown": report_md, "tables": tables, "runs": len(runs), "files": files}
+
+
+def _write_report(runs: list[RunResult], results_dir: Path, out: Path, reps: int, seed: int):
+    """Write the report's files into `out`; (report.md's text, the tables, the files written)."""
     groups = group_runs(runs)
     extra = differing_keys(groups)
     sections, tables, all_runs, files = [], [], [], []
@@ -529,4 +555,4 @@ def build_report(results_dir: Path, out_dir: Path | None = None, reps: int = BOO
     report_md = header + "\n".join(sections)
     atomic_write_text(out / "report.md", report_md)
     files = [out / "report.md", runs_csv, *files]
-    return {"out_dir": out, "markdown": report_md, "tables": tables, "runs": len(runs), "files": files}
+    return report_md, tables, files
