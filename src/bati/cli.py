@@ -340,14 +340,8 @@ class Run:
     """Where the family's expert is (default: the package zoo)."""
 
     def run(self) -> None:
-        from bati.experiments.main_job import MainJobConfig, resolve_methods, run_main_job
-        from bati.io import check_directory
+        from bati.experiments.main_job import MainJobConfig, run_main_job
 
-        for method in resolve_methods(self.methods):  # every setting, before the data is collected (one line)
-            TrainConfig(family=self.family, method=method, scale=self.scale, steps=self.steps, noise=self.noise,
-                        data_root=self.data_root, zoo_dir=self.zoo_dir).resolved()
-        if self.out_dir is not None:
-            check_directory(self.out_dir, "the experiment directory")
         results = run_main_job(MainJobConfig(self.family, self.methods, self.seeds, self.scale, self.steps,
                                              self.noise, self.data_root, self.out_dir, self.zoo_dir))
         console.print(Markdown(results["markdown"]))

@@ -17,7 +17,7 @@ from bati.config import TrainConfig, get_scale
 from bati.data import ensure_family_data
 from bati.envs import get_family
 from bati.evaluate import reference_returns
-from bati.io import atomic_write_json, atomic_write_text
+from bati.io import atomic_write_json, atomic_write_text, check_directory
 from bati.methods import METHODS
 from bati.report.curves import plot_learning_curves
 from bati.report.tables import METHOD_LABELS, results_markdown
@@ -85,6 +85,10 @@ def run_main_job(config: MainJobConfig, show_progress: bool = True) -> dict:
     check_seeds(config.seeds)
     steps = config.steps if config.steps is not None else MAIN_JOB_STEPS.get(config.scale)
     out = config.out_dir or Path("runs") / config.family / config.scale
+    for method in methods:  # every setting, before the data is collected (one line)
+        TrainConfig(family=config.family, method=method, scale=config.scale, steps=steps, noise=config.noise,
+                    data_root=config.data_root, zoo_dir=config.zoo_dir).resolved()
+    check_directory(out, "the experiment directory")
     data = ensure_family_data(config.family, get_scale(config.scale).data, 0, config.noise, config.data_root,
                               progress=show_progress, zoo_dir=config.zoo_dir)
     references = reference_returns(data, zoo_dir=config.zoo_dir)
