@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The cpu-scale main table (issue 30), one family and one method at a time, in the background:
-#   nohup nice bash scripts/cpu_main_queue.sh /work/run-data > cpu-queue.log 2>&1 &
+#   PYTHONPATH=$PWD/src nohup nice bash scripts/cpu_main_queue.sh /work/run-data /work/main/results/cpu/experiments \
+#       > cpu-queue.log 2>&1 &   (PYTHONPATH: this checkout's code, not the editable install's)
 # Each line is a resumable `bati experiment`: finished cells are skipped, an interrupted job resumes from its
 # checkpoints. Run it from an archive of a fixed commit (git worktree add ../bg-<commit> <commit>) so that the
 # code does not change under a running job; results go into this checkout's results/cpu/experiments.
