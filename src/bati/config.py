@@ -144,17 +144,13 @@ class TrainConfig:
     # --- reading and writing ------------------------------------------------------------------
     @classmethod
     def from_record(cls, record: dict) -> TrainConfig:
-        """See _from_record; a section that is not an object of settings is one ValueError."""
+        """The config a run directory's config.json records (lists back to tuples; `runtime` and keys
+        this version does not know are ignored; older records are upgraded first). A section that is not an
+        object of settings is one ValueError."""
         for name in ("iql", *method_sections()):
             if name in record and not isinstance(record[name], dict):
                 raise ValueError(f"config setting {name!r} must be an object of settings, got "
                                  f"{type(record[name]).__name__} {record[name]!r}")
-        return cls._from_record(record)
-
-    @classmethod
-    def _from_record(cls, record: dict) -> TrainConfig:
-        """The config a run directory's config.json records (lists back to tuples; `runtime` and keys
-        this version does not know are ignored; older records are upgraded first)."""
         record = upgrade_record(record)
         kinds = {f.name: f for f in fields(cls)}
         values = {k: _tuples(v) for k, v in record.items() if k in kinds}

@@ -24,7 +24,7 @@ import numpy as np
 
 from bati.experiments.probes import read_probe
 from bati.experiments.specs import MUJOCO, get_spec, plan_experiment
-from bati.report.runs import RunResult, earlier_sessions_time
+from bati.report.runs import RunResult, jobs_wall_time
 from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval, require_rliable
 
 MIN_SEEDS = 3
@@ -91,8 +91,7 @@ def gather(spec_name: str, source: Source, root: Path) -> list[Record]:
         except (OSError, ValueError, TypeError, AttributeError):
             continue
         score = (lambda v: run.normalised(v)) if run.reference_returns else (lambda v: v)  # noqa: E731
-        wall = (run.wall_time_s or 0.0) + earlier_sessions_time(c.out_dir)
-        results = [(run.p_test_return, run.p_train_return, c.eval_context_length, run.commit, wall,
+        results = [(run.p_test_return, run.p_train_return, c.eval_context_length, run.commit, run.total_wall_time(),
                     f"{c.out_dir.parent}/{c.method}")]
         probes = plan.probes.get(cell.id, ())
         if probes:
@@ -345,14 +344,6 @@ class Finding:
     wall_time_s: float
 
 
-def jobs_wall_time(records: list[Record]) -> float:
-    """Seconds of the jobs behind the records, each job once (its seeds share its time)."""
-    jobs: dict[str, float] = {}
-    for r in records:
-        jobs[r.job] = max(jobs.get(r.job, 0.0), r.wall_time_s)
-    return sum(jobs.values())
-
-
 def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> list[Finding]:
     """Every claim at every scale present under `root`."""
     require_rliable()
@@ -367,7 +358,7 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
             findings.append(Finding(claim, source, lines, verdict, len(records),
                                     sorted({r.commit[:12] for r in records if r.commit}),
                                     sorted({r.device for r in records if r.device}),
-                                    jobs_wall_time(records)))
+                                    jobs_wall_time((r.job, r.wall_time_s) for r in records)))
     return findings
 
 

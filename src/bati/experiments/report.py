@@ -27,7 +27,7 @@ from bati.report.build import (_csv_text, group_runs, group_title, method_order,
                                plot_profile)
 from bati.report.build import table_markdown as group_table
 from bati.report.curves import save_figure
-from bati.report.runs import RunResult, earlier_sessions_time
+from bati.report.runs import RunResult, jobs_wall_time
 from bati.report.tables import METHOD_LABELS
 
 CSV_FIELDS = ("row", "column", "n_seeds", "seeds", "mean", "std", "paper")
@@ -294,11 +294,7 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
             curve_rows += [row for run in group.runs for row in curve_records(group.slug, run)]
     commits = sorted({r["commit"] for r in records if r.get("commit")})
     devices = sorted({r["device"] for r in records if r.get("device")})
-    jobs: dict[tuple, float] = {}  # the seeds of a setting and method train as one job and share its time
-    for run in runs:
-        key = (run.path.parent.parent, run.method)
-        jobs[key] = max(jobs.get(key, 0.0), (run.wall_time_s or 0.0) + earlier_sessions_time(run.path.parent))
-    train_wall = sum(jobs.values())
+    train_wall = jobs_wall_time(((run.path.parent.parent, run.method), run.total_wall_time()) for run in runs)
     n_done = len(runs)
     header = [
         f"# Experiment `{spec.name}` ({plan.scale} scale)", "", spec.title + ".", "",

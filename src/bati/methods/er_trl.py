@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 import jax
 import jax.numpy as jnp
 
+from bati.checks import check_integer
 from bati.envs.base import FamilyRecord, record_default
 from bati.methods.base import MethodSpec
 from bati.methods.focal import FOCAL, FOCALConfig
@@ -49,8 +50,7 @@ class ERTRLConfig(FOCALConfig):
         return replace(self, entropy_weight=record.entropy_weight if record else record_default("entropy_weight"))
 
     def check(self) -> None:
-        if self.noise_dim < 1:
-            raise ValueError(f"ertrl.noise_dim must be an integer >= 1, got {self.noise_dim!r}")
+        check_integer("ertrl.noise_dim", self.noise_dim)
 
 
 def gaussian_entropy(samples: jax.Array, epsilon: float = 1e-5) -> jax.Array:

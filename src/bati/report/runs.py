@@ -112,6 +112,10 @@ class RunResult:
             wall_time_s=None if raw.get("wall_time_s") is None else _float(raw["wall_time_s"]),
         )
 
+    def total_wall_time(self) -> float:
+        """Seconds the run's job took over all its sessions (eval.json holds the last session's)."""
+        return (self.wall_time_s or 0.0) + earlier_sessions_time(self.path.parent)
+
     def settings(self) -> dict:
         """The flattened config that decides the run's table (methods, seeds and paths left out).
 
@@ -157,6 +161,15 @@ def earlier_sessions_time(run_dir: Path) -> float:
     except (OSError, ValueError):
         return 0.0
     return float(sum(before for before, after in zip(clock, clock[1:]) if after < before))
+
+
+def jobs_wall_time(times) -> float:
+    """Seconds of the jobs behind (job, seconds) pairs, each job counted once: the seeds of one setting and
+    method train as one vmapped job and each records its time."""
+    jobs: dict = {}
+    for job, seconds in times:
+        jobs[job] = max(jobs.get(job, 0.0), seconds)
+    return float(sum(jobs.values()))
 
 
 def find_eval_files(directory: Path) -> list[Path]:
