@@ -110,6 +110,15 @@ def test_returns_in_your_env_and_bati_infer_on_an_own_data_run(dataset, tmp_path
         assert e["held_out_return"] == pytest.approx(np.mean(e["held_out_task_returns"]), abs=1e-3)
     summary = json.loads((out / "eval.json").read_text())
     assert summary["held_out_return"] == pytest.approx(np.mean([e["held_out_return"] for e in evals]))
+    # bati report: a held-out table for own-data runs (no returns to normalise), not "missing keys"
+    assert main(["report", str(out), "--out-dir", str(tmp_path / "report")]) == 0, capsys.readouterr().err
+    md = (tmp_path / "report" / "report.md").read_text()
+    assert "### own data (" in md and "held-out task-inference accuracy" in md and "return in your env" in md
+    row = next(line for line in md.splitlines() if line.startswith("| bati |"))
+    assert f"{summary['held_out_return']:.1f}" in row and f"{summary['held_out_inference_accuracy']:.3f}" in row
+    assert (tmp_path / "report" / "runs.csv").read_text().count("\n") == 2  # header + the run
+    assert (tmp_path / "report" / "own-quick-eps0-20steps_held_out.png").is_file()
+    capsys.readouterr()
     assert all(t["episode_return_mean"] < 0 for t in summary["data"]["tasks"])
     assert json.loads((out / "config.json").read_text())["eval_env"] == "GoalLine-v0"
 

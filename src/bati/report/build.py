@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import math
 import os
 import re
@@ -26,6 +27,7 @@ from bati.io import atomic_write_text, make_dirs
 from bati.report.runs import RunResult, find_eval_files, load_runs
 from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval, performance_profile, require_rliable
 from bati.report.curves import save_figure
+from bati.report.held_out import HELD_OUT_COLUMNS, held_out_markdown, held_out_rows, plot_held_out
 from bati.report.tables import METHOD_LABELS, return_digits
 
 # Methods that a probability of improvement is computed for (against every other method of the group).
@@ -53,7 +55,8 @@ CSV_COLUMNS = (
 RUN_COLUMNS = ("table", "family", "method", "seed", "scale", "noise", "steps", "evaluations_averaged",
                "p_train_return", "p_test_return", "p_train_normalised", "p_test_normalised",
                "p_train_inference_error", "p_test_inference_error", "random_return", "expert_return",
-               "wall_time_s", "device", "commit", "path")
+               "wall_time_s", "device", "commit", "path",
+               "held_out_inference_accuracy", "held_out_representation_loss", "held_out_return")
 
 
 def method_order(method: str) -> tuple:
@@ -111,6 +114,11 @@ class Group:
         return sorted((r for r in self.runs if r.method == method), key=lambda r: r.seed)
 
     @property
+    def own_data(self) -> bool:
+        """Runs on your own datasets: held-out metrics instead of returns (bati.report.held_out)."""
+        return all(r.own_data for r in self.runs)
+
+    @property
     def normalised(self) -> bool:
         """Normalised scores only when every run of the group has reference returns."""
         return all(r.reference_returns is not None for r in self.runs)
@@ -161,12 +169,27 @@ def differing_keys(groups: list[Group]) -> list[str]:
             and len({repr(g.settings[k]) for g in groups if k in g.settings}) > 1]
 
 
+def _datasets(group: Group) -> list[str]:
+    """The datasets of a group of runs on your own data (settings hold lists as JSON text)."""
+    value = group.settings.get("datasets")
+    try:
+        value = json.loads(value) if isinstance(value, str) else value
+    except ValueError:
+        return [value]
+    return [str(d) for d in value or []]
+
+
 def group_title(group: Group, extra_keys: list[str]) -> str:
     s = group.settings
     parts = [group.family]
+    if group.own_data:
+        names = [Path(d).name for d in _datasets(group)]
+        parts = [f"own data ({', '.join(names)})" if names else "own data"]
+        extra_keys = [k for k in extra_keys if not k.startswith("datasets")]
     if s.get("scale") is not None:
         parts.append(f"{s['scale']} scale")
-    parts.append(f"eps = {_fmt_setting(s['noise'])}" if s.get("noise") is not None else "eps not recorded")
+    if not group.own_data:  # your own data has no noise model of ours
+        parts.append(f"eps = {_fmt_setting(s['noise'])}" if s.get("noise") is not None else "eps not recorded")
     if group.steps():
         parts.append(f"{group.steps():,} steps")
     data = group.data()
@@ -188,7 +211,14 @@ def group_description(group: Group) -> str:
              if s.get("task_batch") is not None and s.get("batch_size") is not None else "")
     lines.append(f"Steps: {steps:,} gradient steps{batch}." if steps else "Steps: not recorded.")
     data = group.data()
-    if data:
+    if group.own_data:
+        from bati.config import LATER_FIELDS  # a setting at its default is left out of the record
+
+        lines.append(f"Data: your datasets {', '.join(_datasets(group)) or '(not recorded)'}"
+                     + (f", {_fmt_setting(data['transitions'])} transitions" if data and data.get("transitions")
+                        else "") + f"; held out: {_fmt_setting(s.get('held_out', LATER_FIELDS['held_out']))} of each task's "
+                     "episodes (no simulator of your tasks: held-out metrics, not returns).")
+    elif data:
         lines.append(f"Data: {data.get('n_episodes', '?')} episodes per training task, "
                      f"{data.get('n_context_episodes', '?')} per context dataset, "
                      f"{_fmt_setting(data.get('transitions', '?'))} transitions"
@@ -196,7 +226,9 @@ def group_description(group: Group) -> str:
     else:
         lines.append("Data: size not recorded in these result files.")
     refs = group.references()
-    if refs is not None:
+    if group.own_data:
+        pass
+    elif refs is not None:
         partial = "" if group.normalised else " (some runs lack them: no normalised scores)"
         d = return_digits(refs["random"], refs["expert"])
         lines.append(f"References (test tasks, same eps): random policy {refs['random']:.{d}f}, "
@@ -360,7 +392,8 @@ def run_records(group: Group) -> list[dict]:
                 "p_train_inference_error": r.p_train_inference_error,
                 "p_test_inference_error": r.p_test_inference_error,
                 "random_return": refs.get("random"), "expert_return": refs.get("expert"),
-                "wall_time_s": r.wall_time_s, "device": r.device, "commit": r.commit, "path": str(r.path)})
+                "wall_time_s": r.wall_time_s, "device": r.device, "commit": r.commit, "path": str(r.path),
+                **r.held_out})
     return records
 
 
@@ -514,6 +547,21 @@ def build_report(results_dir: Path, out_dir: Path | None = None, reps: int = BOO
     return {"out_dir": out, "markdown": report_md, "tables": tables, "runs": len(runs), "files": files}
 
 
+def _write_held_out_table(group: Group, title: str, out: Path) -> dict:
+    """A group of runs on your own datasets: held-out metrics table, its CSV and curves (bati.report.held_out)."""
+    rows = held_out_rows(group.runs_of, group.methods)
+    markdown = held_out_markdown(rows, title, group_description(group))
+    s = group.settings
+    common = {"table": group.slug, "datasets": ";".join(_datasets(group)), "steps": group.steps(),
+              "context_length": s.get("context_length")}
+    csv_path = out / f"{group.slug}.csv"
+    atomic_write_text(csv_path, _csv_text(HELD_OUT_COLUMNS, [{**common, **row} for row in rows]))
+    curves = out / f"{group.slug}_held_out.png"
+    drawn = plot_held_out(group.runs_of, group.methods, curves, title, save_figure)
+    return {"title": title, "slug": group.slug, "settings": group.settings, "rows": rows, "markdown": markdown,
+            "csv": csv_path, "curves": curves if drawn else None, "inference_curves": None, "profile": None}
+
+
 def _write_report(runs: list[RunResult], results_dir: Path, out: Path, reps: int, seed: int):
     """Write the report's files into `out`; (report.md's text, the tables, the files written)."""
     groups = group_runs(runs)
@@ -521,6 +569,14 @@ def _write_report(runs: list[RunResult], results_dir: Path, out: Path, reps: int
     sections, tables, all_runs, files = [], [], [], []
     for group in groups:
         title = group_title(group, extra)
+        if group.own_data:
+            entry = _write_held_out_table(group, title, out)
+            files += [entry[k] for k in ("csv", "curves") if entry[k] is not None]
+            sections.append(entry["markdown"] + (f"\n![{group.slug} held-out metrics]({entry['curves'].name})\n"
+                                                 if entry["curves"] is not None else ""))
+            tables.append(entry)
+            all_runs += run_records(group)
+            continue
         rows = method_rows(group, reps, seed)
         markdown = table_markdown(group, rows, title)
         csv_path = out / f"{group.slug}.csv"

@@ -15,6 +15,9 @@ from bati.io import read_jsonl
 IGNORED_CONFIG_KEYS = frozenset({"method", "seed", "out_dir", "data_root", "log_to", "zoo_dir",
                                  "method_config"})
 REQUIRED_KEYS = ("family", "method", "seed", "p_test_return", "p_train_return")
+# A run on your own datasets (family "own") has no p_train / p_test returns but these held-out metrics
+# (evaluate.OfflineEvaluator); it needs the first of them instead of the returns.
+HELD_OUT_KEYS = ("held_out_inference_accuracy", "held_out_representation_loss", "held_out_return")
 
 
 def _comparable(config: dict) -> dict:
@@ -73,13 +76,23 @@ class RunResult:
     jax_version: str | None = None
     commit: str | None = None
     wall_time_s: float | None = None
+    held_out: dict[str, float] = field(default_factory=dict)
+    """A run on your own datasets: its HELD_OUT_KEYS (no p_train / p_test returns, which are NaN)."""
+
+    @property
+    def own_data(self) -> bool:
+        return bool(self.held_out)
 
     @classmethod
     def from_dict(cls, raw: dict, path: Path) -> RunResult:
-        missing = [k for k in REQUIRED_KEYS if k not in raw]
+        own_data = "p_test_return" not in raw and HELD_OUT_KEYS[0] in raw
+        required = REQUIRED_KEYS[:3] + (HELD_OUT_KEYS[:1] if own_data else REQUIRED_KEYS[3:])
+        missing = [k for k in required if k not in raw]
         if missing:
             raise ValueError(f"missing key(s) {', '.join(missing)}")
-        for key in ("p_test_return", "p_train_return"):  # a damaged value must not stand in for a run
+        held_out = {k: raw[k] for k in HELD_OUT_KEYS if k in raw} if own_data else {}
+        for key in ("p_test_return", "p_train_return") if not own_data else held_out:
+            # a damaged value must not stand in for a run
             if isinstance(raw[key], bool) or not isinstance(raw[key], (int, float)) or not math.isfinite(raw[key]):
                 raise ValueError(f"{key} is {raw[key]!r}, not a finite number")
         curve = raw.get("curve") or []
@@ -98,7 +111,7 @@ class RunResult:
         config = raw.get("config")
         return cls(
             path=path, family=str(raw["family"]), method=str(raw["method"]), seed=int(raw["seed"]),
-            p_test_return=_float(raw["p_test_return"]), p_train_return=_float(raw["p_train_return"]),
+            p_test_return=_float(raw.get("p_test_return")), p_train_return=_float(raw.get("p_train_return")),
             p_test_inference_error=_float(raw.get("p_test_inference_error")),
             p_train_inference_error=_float(raw.get("p_train_inference_error")),
             scale=raw.get("scale"), steps=None if raw.get("steps") is None else int(raw["steps"]),
@@ -110,6 +123,7 @@ class RunResult:
             reference_returns=refs, data=raw.get("data") if isinstance(raw.get("data"), dict) else None,
             device=raw.get("device"), jax_version=raw.get("jax_version"), commit=raw.get("commit"),
             wall_time_s=None if raw.get("wall_time_s") is None else _float(raw["wall_time_s"]),
+            held_out={k: float(v) for k, v in held_out.items()},
         )
 
     def total_wall_time(self) -> float:
