@@ -18,7 +18,9 @@ import numpy as np
 from train_step import DIMS, random_data
 
 from bati.config import TrainConfig
-from bati.train import Trainer, describe_device
+from bati.config import family_of
+from bati.train import describe_device
+from bati.trainer import Trainer
 
 
 def seed_steps_per_second(trainer: Trainer, data, k: int, length: int, chunks: int) -> float:
@@ -46,7 +48,7 @@ def main() -> None:
     args = parser.parse_args()
     data = random_data(args.family)
     config = TrainConfig(family=args.family, method=args.method, scale=args.scale).resolved()
-    trainer = Trainer(config, data)
+    trainer = Trainer(config, data, family_of(config.family))
     print(f"device: {describe_device()}; jax {jax.__version__}; {args.family} {args.method} {args.scale} "
           f"({config.task_batch} x {config.batch_size}, IQL {config.iql.hidden_dims})")
     print("| seeds k | ms per step (all k) | seed-steps / s | vs k = 1 |\n| --- | --- | --- | --- |")

@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from bati.data import FamilyData, TaskData
-from bati.config import TrainConfig
-from bati.train import Trainer
+from bati.config import TrainConfig, family_of
+from bati.trainer import Trainer
 
 DIMS = {"PointGoal": (2, 2, 2), "AntDir": (27, 8, 2), "HalfCheetahVel": (17, 6, 1), "HalfCheetahDir": (17, 6, 1),
         "HopperParam": (11, 3, 1), "WalkerParam": (17, 6, 1)}
@@ -45,7 +45,7 @@ def main() -> None:
     for method in args.methods:
         for scale in ("quick", "paper"):
             config = TrainConfig(family=args.family, method=method, scale=scale).resolved()
-            trainer = Trainer(config, data)
+            trainer = Trainer(config, data, family_of(config.family))
             state = trainer.init(jax.random.PRNGKey(0))
             state, _ = trainer.run_chunk(state, jax.random.PRNGKey(1), data.train, length=20)
             jax.block_until_ready(state)

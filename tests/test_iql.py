@@ -101,7 +101,7 @@ def test_latent_gradients_do_not_flow_through_iql():
 def test_a_checkpoint_saved_before_train_states_loads_into_them():
     import flax
 
-    from bati.rl.iql import upgrade_checkpoint
+    from bati.checkpoints import upgrade_iql_state
 
     iql = IQL(3, 2, 2, IQLConfig(hidden_dims=(8,)))
     state, _ = iql.update(iql.init(jax.random.PRNGKey(0)), *_toy_batch())
@@ -110,6 +110,6 @@ def test_a_checkpoint_saved_before_train_states_loads_into_them():
            "target_critic": new["critic"]["target_params"], "value": new["value"]["params"],
            "actor_opt": new["actor"]["opt_state"], "critic_opt": new["critic"]["opt_state"],
            "value_opt": new["value"]["opt_state"]}  # the layout of IQLState before flax TrainStates
-    restored = flax.serialization.from_state_dict(iql.init(jax.random.PRNGKey(1)), upgrade_checkpoint(old, 1))
+    restored = flax.serialization.from_state_dict(iql.init(jax.random.PRNGKey(1)), upgrade_iql_state(old, 1))
     jax.tree_util.tree_map(np.testing.assert_array_equal, restored, state)
-    assert upgrade_checkpoint(new, 1) is new  # today's layout passes through
+    assert upgrade_iql_state(new, 1) is new  # today's layout passes through

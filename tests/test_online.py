@@ -61,7 +61,8 @@ def data():
 def states(method_params=None, actor=None):
     method_params = {"table": jnp.stack([jnp.array([[-1.0], [-2.0]])] * RUNS)} if method_params is None else method_params
     actor = {"drift": jnp.stack([jnp.array([0.05, 0.1])] * RUNS)} if actor is None else actor
-    return SimpleNamespace(method=method_params, iql=SimpleNamespace(actor=SimpleNamespace(params=actor)))
+    return SimpleNamespace(method=SimpleNamespace(params=method_params),
+                           iql=SimpleNamespace(actor=SimpleNamespace(params=actor)))
 
 
 KEYS = jnp.stack([jax.random.PRNGKey(3), jax.random.PRNGKey(4)])

@@ -11,13 +11,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import bati.checkpoints as checkpoints_module
 import bati.train as train_module
 from bati.rl.iql import IQLConfig
 from bati.envs import FAMILY_NAMES, get_family
 from bati.evaluate import Evaluator
 from bati.methods import METHODS
 from bati.config import TrainConfig
-from bati.train import Trainer, TrainingError, train, train_seeds
+from bati.config import family_of
+from bati.experts import load as load_expert
+from bati.train import TrainingError, train, train_seeds
+from bati.trainer import Trainer
 
 TINY = dict(iql=IQLConfig(hidden_dims=(32, 32)), task_batch=4, batch_size=8, context_length=20, log_every=5)
 
@@ -28,7 +32,8 @@ TINY = dict(iql=IQLConfig(hidden_dims=(32, 32)), task_batch=4, batch_size=8, con
 def test_every_method_trains_and_evaluates_on_every_family(method, family, synthetic_data):
     data = synthetic_data(family)
     config = TrainConfig(family=family, method=method, steps=5, **TINY).resolved()
-    trainer = Trainer(config, data)
+    expert = load_expert(family) if METHODS[method].needs_expert_actions else None  # DPT imitates it
+    trainer = Trainer(config, data, family_of(config.family), expert)
     state = trainer.init(jax.random.PRNGKey(0))
     state, metrics = trainer.run_chunk(state, jax.random.PRNGKey(1), data.train, length=5)
     assert int(state.step) == 5
@@ -73,7 +78,7 @@ def _params(path, template):
 
 def _killed_at_second_checkpoint(monkeypatch):
     """Make the second checkpoint write die (as a kill would): the run stops after step 20's logs."""
-    real, calls = train_module.atomic_write_bytes, []
+    real, calls = checkpoints_module.atomic_write_bytes, []
 
     def write(path, data):
         calls.append(path)
@@ -81,7 +86,7 @@ def _killed_at_second_checkpoint(monkeypatch):
             raise KeyboardInterrupt
         real(path, data)
 
-    monkeypatch.setattr(train_module, "atomic_write_bytes", write)
+    monkeypatch.setattr(checkpoints_module, "atomic_write_bytes", write)
 
 
 def test_resume_after_interruption_gives_the_same_parameters(tmp_path, point_data, monkeypatch):
@@ -91,7 +96,7 @@ def test_resume_after_interruption_gives_the_same_parameters(tmp_path, point_dat
         with pytest.raises(KeyboardInterrupt):
             train(_config(tmp_path, "resumed"), show_progress=False)  # killed before its step-20 checkpoint
     train(_config(tmp_path, "resumed"), show_progress=False)  # resumes from its step-10 checkpoint
-    template = Trainer(_config(tmp_path, "x").resolved(), point_data).init(jax.random.PRNGKey(0))
+    template = Trainer(_config(tmp_path, "x").resolved(), point_data, family_of("PointGoal")).init(jax.random.PRNGKey(0))
     straight = _params(tmp_path / "straight" / "checkpoint.msgpack", template)
     resumed = _params(tmp_path / "resumed" / "checkpoint.msgpack", template)
     assert int(resumed.step) == 20
@@ -146,7 +151,7 @@ def test_likelihood_split_reports_errors_for_each_part_of_eq8(tmp_path, monkeypa
     from bati import inference
     from bati.report import likelihood
 
-    monkeypatch.setattr(inference, "load_family_data", lambda *a, **k: point_data)
+    monkeypatch.setattr(train_module, "load_family_data", lambda *a, **k: point_data)
     train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
     report = likelihood.likelihood_split(tmp_path / "run", context_length=20)
     max_distance = 2.0  # PointGoal goals lie on the unit circle
@@ -173,7 +178,7 @@ def test_infer_and_novelty_on_a_trained_bati_auto_run(tmp_path, monkeypatch, poi
     from bati.cli import main
     from bati.experiments.probes import Probe, run_probe
 
-    monkeypatch.setattr(inference, "load_family_data", lambda *a, **k: point_data)
+    monkeypatch.setattr(train_module, "load_family_data", lambda *a, **k: point_data)
     train(_config(tmp_path, "run", steps=5, eval_every=5, method="bati-auto"), show_progress=False)
     run_dir = tmp_path / "run"
     evals = [json.loads(line) for line in (run_dir / "eval.jsonl").read_text().splitlines()]
@@ -203,20 +208,22 @@ def test_infer_and_novelty_on_a_trained_bati_auto_run(tmp_path, monkeypatch, poi
 
 def test_training_step_vmaps_over_seeds(synthetic_data):
     data = synthetic_data("PointGoal")
-    trainer = Trainer(TrainConfig(family="PointGoal", method="bati", steps=3, **TINY).resolved(), data)
+    trainer = Trainer(TrainConfig(family="PointGoal", method="bati", steps=3, **TINY).resolved(), data,
+                      family_of("PointGoal"))
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
     states = jax.vmap(trainer.init)(keys)
     run = jax.jit(jax.vmap(lambda s, k: trainer._run_chunk(s, k, data.train, 3)))
     states, metrics = run(states, keys)
     assert metrics["critic_loss"].shape == (2,)
     single, _ = trainer.run_chunk(trainer.init(keys[1]), keys[1], data.train, length=3)
-    np.testing.assert_allclose(states.method["table"][1], single.method["table"], rtol=1e-4, atol=1e-5)
-    assert not np.allclose(states.method["table"][0], states.method["table"][1])
+    np.testing.assert_allclose(states.method.params["table"][1], single.method.params["table"], rtol=1e-4, atol=1e-5)
+    assert not np.allclose(states.method.params["table"][0], states.method.params["table"][1])
 
 
 def _trained(method, data, steps=5):
     config = TrainConfig(family=data.family, method=method, steps=steps, **TINY).resolved()
-    trainer = Trainer(config, data)
+    expert = load_expert(data.family) if METHODS[method].needs_expert_actions else None
+    trainer = Trainer(config, data, family_of(config.family), expert)
     start = trainer.init(jax.random.PRNGKey(0))
     state, _ = trainer.run_chunk(start, jax.random.PRNGKey(1), data.train, length=steps)
     return trainer, start, state
@@ -226,7 +233,7 @@ def test_dpt_is_its_own_policy_so_iql_is_left_untouched(synthetic_data):
     trainer, start, state = _trained("dpt", synthetic_data("PointGoal"))
     same = jax.tree_util.tree_map(lambda a, b: bool(jnp.array_equal(a, b)), start.iql, state.iql)
     assert all(jax.tree_util.tree_leaves(same))
-    changed = jax.tree_util.tree_map(lambda a, b: bool(jnp.array_equal(a, b)), start.method, state.method)
+    changed = jax.tree_util.tree_map(lambda a, b: bool(jnp.array_equal(a, b)), start.method.params, state.method.params)
     assert not all(jax.tree_util.tree_leaves(changed))
 
 
@@ -244,7 +251,7 @@ def test_oracle_infers_the_true_task_whatever_the_context(synthetic_data):
 def test_seeds_in_one_program_equal_the_runs_trained_alone(tmp_path, point_data):
     together = train_seeds(_config(tmp_path, "unused"), (0, 1, 2), show_progress=False, runs_dir=tmp_path / "vmapped")
     alone = train(_config(tmp_path, "alone", seed=1), show_progress=False)
-    template = Trainer(_config(tmp_path, "x").resolved(), point_data).init(jax.random.PRNGKey(0))
+    template = Trainer(_config(tmp_path, "x").resolved(), point_data, family_of("PointGoal")).init(jax.random.PRNGKey(0))
     vmapped = _params(tmp_path / "vmapped" / "bati-seed1" / "checkpoint.msgpack", template)
     single = _params(tmp_path / "alone" / "checkpoint.msgpack", template)
     jax.tree_util.tree_map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5), vmapped, single)
@@ -323,12 +330,16 @@ def test_a_run_takes_its_expert_from_zoo_dir(tmp_path, point_data, monkeypatch):
 
     zoo = tmp_path / "zoo"
     shutil.copytree(ZOO_DIR / "PointGoal", zoo / "PointGoal")
-    asked = []
-    real = train_module.reference_returns
+    asked, loaded, used = [], [], []
+    real_load, real_references = train_module.load_expert, train_module.reference_returns
+    monkeypatch.setattr(train_module, "load_expert",
+                        lambda family, zoo_dir=None: asked.append(zoo_dir) or loaded.append(real_load(family, zoo_dir))
+                        or loaded[-1])
     monkeypatch.setattr(train_module, "reference_returns",
-                        lambda data, zoo_dir=None, **k: asked.append(zoo_dir) or real(data, zoo_dir=zoo_dir, **k))
+                        lambda data, **k: used.append(k.get("expert")) or real_references(data, **k))
     summary = train(_config(tmp_path, "own-zoo", zoo_dir=zoo), show_progress=False)
-    assert asked == [zoo] and summary["reference_returns"]["expert"] == real(point_data)["expert"]
+    assert asked == [zoo] and used == loaded  # loaded once, from the zoo, and the reference return is its
+    assert summary["reference_returns"]["expert"] == real_references(point_data)["expert"]
 
 
 def _context_file(tmp_path, name="ctx.npz", c=4, **override):
@@ -358,3 +369,19 @@ def test_a_bad_context_file_is_one_line_naming_the_file_and_the_array(tmp_path, 
         read_context(path, obs_dim=2, action_dim=2)
     assert str(path) in str(caught.value) and "\n" not in str(caught.value)
     assert read_context(_context_file(tmp_path, "good.npz"), 2, 2)["rewards"].shape == (1, 4)
+
+
+def test_checkpoints_of_the_layout_before_the_method_train_state_load_with_the_same_numbers(tmp_path, point_data):
+    """Checkpoints written before the method's parameters lived in a flax TrainState (method, method_opt) are
+    read back in today's layout with every number as saved."""
+    from bati.checkpoints import load_checkpoint
+
+    trainer = Trainer(_config(tmp_path, "x").resolved(), point_data, family_of("PointGoal"))
+    state, _ = trainer.run_chunk(trainer.init(jax.random.PRNGKey(0)), jax.random.PRNGKey(1), point_data.train, length=3)
+    new = flax.serialization.to_state_dict(state)
+    old = {"method": new["method"]["params"], "method_opt": new["method"]["opt_state"], "iql": new["iql"],
+           "step": new["step"]}
+    (tmp_path / "old.msgpack").write_bytes(flax.serialization.msgpack_serialize(old))
+    restored = load_checkpoint(tmp_path / "old.msgpack", trainer.init(jax.random.PRNGKey(5)))
+    same = jax.tree_util.tree_map(lambda a, b: bool(np.array_equal(a, b)), restored, state)
+    assert all(jax.tree_util.tree_leaves(same))

@@ -73,7 +73,7 @@ class RunsPolicy:
 
     def params(self, states):
         """The policy's parameters in `states` (stacked over runs)."""
-        return states.method if self.method.acts_itself else states.iql.actor.params
+        return states.method.params if self.method.acts_itself else states.iql.actor.params
 
     def __call__(self, params, observations, z) -> np.ndarray:
         """Actions (k * n, action_dim) for observations (k * n, obs_dim) and latents z (k, n, latent_dim)."""
@@ -83,9 +83,11 @@ class RunsPolicy:
 
 
 class Evaluator:
-    def __init__(self, method, iql, data: FamilyData, context_length: int, context_mix: float | None = None):
+    def __init__(self, method, iql, data: FamilyData, context_length: int, context_mix: float | None = None,
+                 family=None):
+        """`family`: the TaskFamily the data came from (default: looked up by the data's family name)."""
         self.method, self.iql, self.data = method, iql, data
-        self.family = get_family(data.family)
+        self.family = family if family is not None else get_family(data.family)
         self.context_length = context_length
         if context_mix is not None and not 0.0 <= context_mix <= 1.0:
             raise ValueError(f"context_mix must be in [0, 1] (the share of p_test transitions), got {context_mix!r}")
@@ -151,7 +153,7 @@ class Evaluator:
         batched (vmapped) policy call per step; run j's env i is reset with seeds[j] + i, as `evaluate`.
         """
         k, n = len(seeds), len(self.data.test_tasks)
-        latents, diagnostics = jax.device_get(self.latents_of_runs(states.method, keys))
+        latents, diagnostics = jax.device_get(self.latents_of_runs(states.method.params, keys))
         policy_params = self.policy.params(states)
         returns = {}
         for source in self.sources:
@@ -192,17 +194,18 @@ def calibrate(method, params, data: FamilyData, context_length: int, key: jax.Ar
     return method.calibrate(params, sample_off_policy_contexts(data.train, key, length), train_distances)
 
 
-def reference_returns(data: FamilyData, seed: int = 0, zoo_dir: str | Path | None = None) -> dict[str, float]:
+def reference_returns(data: FamilyData, seed: int = 0, zoo_dir: str | Path | None = None, *, family=None,
+                      expert=None) -> dict[str, float]:
     """Mean return on the test tasks of a uniform random policy (0 on a normalised scale) and of the
-    data-collecting experts (from `zoo_dir`, default the package zoo), each acting for its own task (1; the
-    paper's "Oracle (Pre-IQL)")."""
+    data-collecting experts (`expert`, default the one in `zoo_dir` or the package zoo), each acting for its
+    own task (1; the paper's "Oracle (Pre-IQL)"). `family`: the data's TaskFamily (default: by name)."""
     from bati.experts import load
     from bati.experts.card import expert_episodes
 
-    family = get_family(data.family)
+    family = family if family is not None else get_family(data.family)
+    expert = expert if expert is not None else load(data.family, zoo_dir)
     exact_random = family.exact_returns(None, data.test_tasks, data.noise)
     if exact_random is not None:  # computed expectations (KuhnPoker: per hand), as `Evaluator` reports them
-        expert = load(data.family, zoo_dir)
         arrays = np.stack([family.task_to_array(t) for t in data.test_tasks])
         key = jax.random.PRNGKey(seed)
         exact_expert = family.exact_returns(lambda obs: expert.act_from_arrays(obs, arrays, True, key),
@@ -214,7 +217,6 @@ def reference_returns(data: FamilyData, seed: int = 0, zoo_dir: str | Path | Non
     probe.close()
     random_episodes = rollout(family, data.test_tasks, lambda obs, _: rng.uniform(low, high, (len(obs), len(low))),
                               noise=data.noise, seed=3000 + seed)
-    expert = load(data.family, zoo_dir)
     experts = expert_episodes(expert, data.test_tasks, data.test_tasks, data.noise, seed=2000 + seed)
     return {"random": float(random_episodes.returns.mean()), "expert": float(experts.returns.mean())}
 
@@ -272,7 +274,7 @@ class OfflineEvaluator:
         return {"held_out_inference_accuracy": accuracy, "held_out_representation_loss": loss}, z
 
     def evaluate_runs(self, states, keys: jax.Array, seeds: list[int]) -> list[OfflineResult]:
-        values, latents = jax.device_get(self.of_runs(states.method, keys))
+        values, latents = jax.device_get(self.of_runs(states.method.params, keys))
         results = [{k: float(v[j]) for k, v in values.items()} for j in range(len(seeds))]
         if self.envs is not None:
             returns = self._returns(states, jnp.asarray(latents), seeds)  # (runs, contexts)

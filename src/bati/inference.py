@@ -28,16 +28,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bati.data import FamilyData, load_family_data, sample_contexts
+from bati.config import TrainConfig
+from bati.data import FamilyData, sample_contexts
 from bati.data.batch import TRANSITION_FIELDS
-from bati.config import family_of
-from bati.data.own import load_own_data
 from bati.errors import BatiError
 from bati.evaluate import calibrate as calibrate_method
 from bati.io import git_commit
-from bati.config import TrainConfig
-from bati.io import read_run_config
-from bati.train import Trainer, load_checkpoint
+from bati.train import open_run
 
 QUANTILE = 0.95
 
@@ -54,33 +51,26 @@ class LoadedRun:
     method: object
     params: dict
     step: int
+    family: object
+    """The run's TaskFamily (OwnFamily on your own data)."""
 
 
 def load_run(run_dir: Path, calibrate: bool = True) -> LoadedRun:
     """A run of a likelihood method at its last checkpoint (BATI-auto calibrated unless `calibrate` is False)."""
     run_dir = Path(run_dir)
-    config = TrainConfig.from_record(read_run_config(run_dir)).resolved()
-    if config.datasets:  # your own data: the same training / held-out split as the run's
-        data = load_own_data(config.datasets, config.task_key, config.context_length, config.held_out,
-                             seed=config.data_seed)
-    else:
-        data = load_family_data(config.family, config.data_scale, config.data_seed, config.noise, config.data_root,
-                                tasks=config.task_split())
-    trainer = Trainer(config, data)
-    method = trainer.method
+    try:
+        run = open_run(run_dir)
+    except ValueError as err:
+        raise InferenceError(str(err)) from err
+    config, data, method = run.config, run.data, run.trainer.method
     if not hasattr(method, "task_latents") or not hasattr(method, "score"):
         raise InferenceError(f"{run_dir}: method {config.method!r} has no task table and likelihood to score")
-    checkpoint = run_dir / "checkpoint.msgpack"
-    if not checkpoint.is_file():
-        raise InferenceError(f"{run_dir} has no checkpoint: train (or resume) the run first")
-    state = load_checkpoint(checkpoint, trainer.init(jax.random.PRNGKey(0)))
-    params = state.method
+    params = run.state.method.params
     if calibrate and method.calibrates:
-        family = family_of(config.family, config.context_length)
-        distances = jnp.asarray(family.distance_matrix(data.train_tasks, data.train_tasks), jnp.float32)
+        distances = jnp.asarray(run.inputs.family.distance_matrix(data.train_tasks, data.train_tasks), jnp.float32)
         params, _ = calibrate_method(method, params, data, config.eval_context_length, jax.random.PRNGKey(0xCA1),
                                      distances)
-    return LoadedRun(run_dir, config, data, method, params, int(state.step))
+    return LoadedRun(run_dir, config, data, method, params, run.step, run.inputs.family)
 
 
 def table_scores(run: LoadedRun, contexts: dict) -> np.ndarray:
@@ -172,7 +162,7 @@ def infer_context(run_dir: Path, context_file: Path, quantile: float = QUANTILE,
     if not 0.0 < quantile < 1.0:
         raise InferenceError(f"quantile must be in (0, 1), got {quantile!r}")
     run = load_run(run_dir)
-    family = family_of(run.config.family, run.config.context_length)
+    family = run.family
     spec = run.method.spec
     context = read_context(Path(context_file), spec.obs_dim, spec.action_dim)
     scores = table_scores(run, context)[0]

@@ -175,13 +175,13 @@ class SelfCollector:
         runs, n = len(seeds), len(ev.data.test_tasks)
         length, total = ev.context_length, self.episodes * self.episode_length
         # the references (and the given-context latents, unused) as the evaluator infers them
-        latents, _ = jax.device_get(ev.latents_of_runs(states.method, keys))
+        latents, _ = jax.device_get(ev.latents_of_runs(states.method.params, keys))
         reference = np.asarray(latents["reference"])  # (runs, n_train, latent)
         k_prior, k_infer = jnp.moveaxis(jax.vmap(lambda key: jax.random.split(jax.random.fold_in(key, 0x5E1F)))(keys),
                                         1, 0)
         drawn = np.asarray(jax.vmap(lambda key: jax.random.randint(key, (n,), 0, reference.shape[1]))(k_prior))
         prior = np.take_along_axis(reference, drawn[..., None], axis=1)  # (runs, n, latent)
-        method_params = self.calibrate(states.method, keys)
+        method_params = self.calibrate(states.method.params, keys)
         policy_params = ev.policy.params(states)
         test_arrays = jnp.asarray(ev.data.test_task_arrays, jnp.float32)
         obs_dim, action_dim = ev.data.obs_dim, ev.data.action_dim

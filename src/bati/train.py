@@ -1,9 +1,9 @@
-"""Offline training of a task-inference method together with IQL (Alg. 1).
+"""Training runs: run directories, resume, several seeds at once, evaluations and the run's summary.
 
-One jitted step samples a batch of (tasks x transitions) on device, updates the method's
-representation loss, and updates IQL on the latent the method produced, detached. Steps run in
-jitted chunks (`lax.scan`), so the host only wakes up to log, evaluate and checkpoint.
-A run directory holds config.json, metrics.jsonl, eval.jsonl, checkpoint.msgpack and eval.json.
+The algorithm itself is bati.trainer (pure JAX, no files). This module is its edge: it resolves a config
+once (family, data, expert), claims and checks the run directories, brings resumed seeds level, writes
+metrics.jsonl, eval.jsonl, checkpoint.msgpack (bati.checkpoints) and eval.json, and opens a finished run
+again (`open_run`) for inference and probes.
 """
 
 from __future__ import annotations
@@ -16,18 +16,15 @@ import platform
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, NamedTuple
 
-import flax
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from bati.checkpoints import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
 from bati.config import NOT_IDENTITY, TrainConfig, differing_settings, family_of
-from bati.data import FamilyData, ensure_family_data, sample_batch, sample_contexts
-from bati.data.batch import TRANSITION_FIELDS
+from bati.data import FamilyData, ensure_family_data, load_family_data
 from bati.data.own import load_own_data
 from bati.errors import BatiError
 from bati.evaluate import Evaluator, OfflineEvaluator, reference_returns
@@ -35,7 +32,6 @@ from bati.experts import load as load_expert
 from bati.io import (
     LOCK_NAME,
     append_jsonl,
-    atomic_write_bytes,
     atomic_write_json,
     atomic_write_text,
     check_directory,
@@ -46,102 +42,14 @@ from bati.io import (
     read_jsonl_lines,
     read_run_config,
 )
-from bati.methods import MethodSpec, make_method
-from bati.rl.iql import IQL, IQLState, upgrade_checkpoint
 from bati.sinks import open_sinks
+from bati.trainer import Trainer, TrainState
 
-__all__ = ["Trainer", "TrainingError", "train", "train_seeds"]
+__all__ = ["FinishedRun", "TrainingError", "open_run", "train", "train_seeds"]
+
 
 class TrainingError(BatiError, RuntimeError):
     """Training cannot go on (e.g. a NaN loss); earlier checkpoints are left untouched."""
-
-
-class TrainState(NamedTuple):
-    method: Any
-    method_opt: Any
-    iql: IQLState
-    step: jax.Array
-
-
-class Trainer:
-    """Builds the method, IQL and the jitted chunk of training steps for one config."""
-
-    def __init__(self, config: TrainConfig, data: FamilyData, expert=None):
-        """`expert` labels actions for methods that imitate one (DPT); default: the family's shipped expert."""
-        self.config = config
-        self.data = data
-        record = family_of(config.family, config.context_length).record
-        family_spec = MethodSpec(
-            obs_dim=data.obs_dim, action_dim=data.action_dim, task_dim=data.task_dim,
-            n_train_tasks=len(data.train_tasks), latent_dim=record.latent_dim,
-            encoder_dims=record.net_dims, decoder_dims=record.net_dims, family=record,
-            discrete_actions=config.iql.discrete,
-        )
-        self.method = make_method(config.method, family_spec, config.method_config())
-        self.spec = self.method.spec  # a method may change the latent (Oracle: the task array; DPT: its width)
-        self.iql = IQL(data.obs_dim, self.spec.latent_dim, data.action_dim, config.iql)
-        self.optimizer = optax.adam(config.learning_rate)
-        self.train_task_arrays = jnp.asarray(data.train_task_arrays, jnp.float32)
-        if self.method.needs_expert_actions:
-            self.expert = expert or load_expert(config.family, config.zoo_dir)
-        self.run_chunk = jax.jit(self._run_chunk, static_argnames="length")
-        # k seeds in one program: states and keys stacked on a leading axis, the data shared.
-        self.run_chunks = jax.jit(self._run_chunks, static_argnames="length")
-
-    def init(self, key: jax.Array) -> TrainState:
-        k_method, k_iql = jax.random.split(key)
-        params = self.method.init(k_method)
-        return TrainState(params, self.optimizer.init(params), self.iql.init(k_iql), jnp.zeros((), jnp.int32))
-
-    def make_batch(self, data, k_batch: jax.Array, k_context: jax.Array) -> dict:
-        """A training batch of `data` with what the method's flags ask for (contexts, expert labels)."""
-        c = self.config
-        batch = sample_batch(data, k_batch, c.task_batch, c.batch_size)
-        batch["task_arrays"] = self.train_task_arrays[batch["task_ids"]]
-        if self.method.needs_context:
-            batch["context"] = sample_contexts(data, k_context, batch["task_ids"], c.context_length)
-        if self.method.needs_positive_context:
-            batch["positive_context"] = sample_contexts(data, jax.random.fold_in(k_context, 1), batch["task_ids"],
-                                                        c.context_length)
-        if self.method.needs_expert_actions:
-            task_arrays = jnp.broadcast_to(batch["task_arrays"][:, None], batch["observations"].shape[:2] +
-                                           batch["task_arrays"].shape[-1:])
-            batch["expert_actions"] = self.expert.mean_action(batch["observations"], task_arrays)
-        return batch
-
-    def step(self, state: TrainState, key: jax.Array, data) -> tuple[TrainState, dict]:
-        """One training step: representation loss + IQL on the detached latent."""
-        c = self.config
-        k_batch, k_context, k_loss = jax.random.split(key, 3)
-        batch = self.make_batch(data, k_batch, k_context)
-        (rep_loss, (z, rep_metrics)), grads = jax.value_and_grad(self.method.loss, has_aux=True)(
-            state.method, batch, k_loss
-        )
-        updates, method_opt = self.optimizer.update(grads, state.method_opt, state.method)
-        method_params = optax.apply_updates(state.method, updates)
-
-        if self.method.acts_itself:  # e.g. DPT: no IQL policy to train
-            iql_state, iql_metrics = state.iql, {}
-        else:
-            flat = {k: batch[k].reshape((-1,) + batch[k].shape[2:]) for k in TRANSITION_FIELDS + ("terminals",)
-                    if k in batch}
-            z_flat = jnp.repeat(jax.lax.stop_gradient(z), c.batch_size, axis=0)
-            iql_state, iql_metrics = self.iql.update(state.iql, flat, z_flat)
-        metrics = {"representation_loss": rep_loss, **rep_metrics, **iql_metrics}
-        return TrainState(method_params, method_opt, iql_state, state.step + 1), metrics
-
-    def _run_chunk(self, state: TrainState, base_key: jax.Array, data, length: int):
-        """`length` steps; step t uses fold_in(base_key, t), so resuming replays the same keys."""
-
-        def body(state, _):
-            return self.step(state, jax.random.fold_in(base_key, state.step), data)
-
-        state, metrics = jax.lax.scan(body, state, None, length=length)
-        return state, jax.tree_util.tree_map(jnp.mean, metrics)
-
-    def _run_chunks(self, states: TrainState, base_keys: jax.Array, data, length: int):
-        """`_run_chunk` for k runs (seeds) at once: states and keys stacked on axis 0, data shared."""
-        return jax.vmap(lambda state, key: self._run_chunk(state, key, data, length))(states, base_keys)
 
 
 def train(config: TrainConfig, show_progress: bool = True) -> dict:
@@ -150,14 +58,16 @@ def train(config: TrainConfig, show_progress: bool = True) -> dict:
 
 
 def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool = True,
-                runs_dir: Path | None = None) -> list[dict]:
+                runs_dir: Path | None = None, references: dict | None = None) -> list[dict]:
     """Train (or resume) one run per seed of one config as one compiled program vmapped over seeds.
 
     Each seed has its own run directory (`runs_dir/<method>-seed<s>`, default: the config's default
     directory), metrics, evaluations and checkpoints, exactly as a run trained alone; seed s gives the
     numbers of the single-seed run s to float tolerance. Runs resumed from checkpoints of different
     steps are first brought level (the ones behind advance alone), then go on together.
-    Returns the runs' summaries (also in each eval.json), in the order of `seeds`.
+    Returns the runs' summaries (also in each eval.json), in the order of `seeds`. `references`: the
+    collection's random and expert returns when the caller has them (`bati run` computes them once for all
+    its methods); by default they are computed here.
     """
     seeds = check_seeds(seeds)
     if len(seeds) > 1 and config.out_dir is not None and runs_dir is None:
@@ -170,7 +80,7 @@ def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool
             claimed.enter_context(hold_lock(c.out_dir / LOCK_NAME, f"the run directory {c.out_dir}"))
             claimed.enter_context(_forgotten_unless_started(c.out_dir))
             _check_run_dir(c.out_dir, c)
-        return _train_claimed(configs, show_progress)
+        return _train_claimed(configs, show_progress, references)
 
 
 def _check_paths(configs: list[TrainConfig]) -> None:
@@ -244,27 +154,58 @@ def _check_datasets_unchanged(out: Path, fingerprint: dict[str, str]) -> None:
     atomic_write_json(path, fingerprint)
 
 
-def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict]:
+@dataclass
+class RunInputs:
+    """What runs of one config train on, resolved once at the entry point and passed down: the family
+    (an OwnFamily for your own datasets), the data and the family's expert (None on your own data)."""
+
+    config: TrainConfig
+    family: object
+    data: FamilyData
+    expert: object | None
+
+    @classmethod
+    def resolve(cls, config: TrainConfig, show_progress: bool = True, collect: bool = True) -> RunInputs:
+        """The inputs of a resolved config: its data collected if missing (`collect`) or read as it is."""
+        family = family_of(config.family, config.context_length)
+        if config.datasets:
+            data = load_own_data(config.datasets, config.task_key, config.context_length, config.held_out,
+                                 seed=config.data_seed)
+            if config.task_batch > len(data.train_tasks):
+                raise ValueError(f"task_batch ({config.task_batch}) must be at most the {len(data.train_tasks)} tasks "
+                                 "of your datasets: give --task-batch")
+            return cls(config, family, data, None)
+        from bati.methods import METHODS
+
+        # training needs the expert (collection, reference returns): none is one line now, not after training;
+        # a finished run is opened without it unless its method imitates it (DPT)
+        needs_expert = collect or METHODS[config.method].needs_expert_actions
+        expert = load_expert(config.family, config.zoo_dir) if needs_expert else None
+        if collect:
+            data = ensure_family_data(config.family, config.data_scale, config.data_seed, config.noise,
+                                      config.data_root, n_episodes=config.episodes_per_task,
+                                      n_context_episodes=config.context_episodes, progress=show_progress,
+                                      tasks=config.task_split(), zoo_dir=config.zoo_dir)
+        else:
+            data = load_family_data(config.family, config.data_scale, config.data_seed, config.noise,
+                                    config.data_root, tasks=config.task_split())
+        return cls(config, family, data, expert)
+
+    def trainer(self) -> Trainer:
+        return Trainer(self.config, self.data, self.family, self.expert)
+
+
+def _train_claimed(configs: list[TrainConfig], show_progress: bool, references: dict | None) -> list[dict]:
     """train_seeds once its run directories are checked, claimed and locked."""
     config, seeds = configs[0], [c.seed for c in configs]
-    if config.datasets:
-        data = load_own_data(config.datasets, config.task_key, config.context_length, config.held_out,
-                             seed=config.data_seed)
-        if config.task_batch > len(data.train_tasks):
-            raise ValueError(f"task_batch ({config.task_batch}) must be at most the {len(data.train_tasks)} tasks of "
-                             "your datasets: give --task-batch")
-    else:
-        load_expert(config.family, config.zoo_dir)  # no expert: one line now, not after training (its return)
-        data = ensure_family_data(config.family, config.data_scale, config.data_seed, config.noise, config.data_root,
-                                  n_episodes=config.episodes_per_task, n_context_episodes=config.context_episodes,
-                                  progress=show_progress, tasks=config.task_split(), zoo_dir=config.zoo_dir)
-    trainer = Trainer(config, data)
+    inputs = RunInputs.resolve(config, show_progress)
+    data, trainer = inputs.data, inputs.trainer()
     if config.datasets:
         evaluator = OfflineEvaluator(trainer, data, config.eval_context_length, *own_env(config, data))
         for c in configs:  # the data a run started on is the data it resumes on
             _check_datasets_unchanged(Path(c.out_dir), data.manifest["fingerprint"])
     else:
-        evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length)
+        evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length, family=inputs.family)
     runs = [_SeedRun.open(c, trainer) for c in configs]
     start = time.perf_counter()
     progress = Progress(
@@ -283,7 +224,8 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool) -> list[dict
             for run in runs:
                 for sink in run.sinks:
                     sink.close()
-    references = None if config.datasets else reference_returns(data, zoo_dir=config.zoo_dir)
+    if references is None and not config.datasets:
+        references = reference_returns(data, family=inputs.family, expert=inputs.expert)
     session = {"device": describe_device(), "jax_version": jax.__version__, "commit": git_commit(),
                "wall_time_s": round(time.perf_counter() - start, 2)}
     summaries = []
@@ -327,8 +269,8 @@ class _SeedRun:
         """Start fresh or resume from the run directory's checkpoint (the directory is already claimed)."""
         base_key = jax.random.PRNGKey(config.seed)
         state = trainer.init(jax.random.fold_in(base_key, 0))
-        if (config.out_dir / "checkpoint.msgpack").exists():
-            state = _load_checkpoint(config.out_dir / "checkpoint.msgpack", state)
+        if (config.out_dir / CHECKPOINT_NAME).exists():
+            state = load_checkpoint(config.out_dir / CHECKPOINT_NAME, state)
         _drop_records_after(config.out_dir, int(state.step))
         sinks = open_sinks(config.log_to, config.out_dir, config.record()) if config.log_to else []
         return cls(config, state, base_key, sinks)
@@ -358,7 +300,7 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
             bad = [k for k, v in record.items() if not math.isfinite(v)]
             if bad:
                 raise TrainingError(f"{run.out}: non-finite {', '.join(bad)} at step {step}; the last good "
-                                    f"checkpoint (if any) is untouched in {run.out / 'checkpoint.msgpack'}")
+                                    f"checkpoint (if any) is untouched in {run.out / CHECKPOINT_NAME}")
             append_jsonl(run.out / "metrics.jsonl", {"step": step, "wall_time": time.perf_counter() - start, **record})
             for sink in run.sinks:
                 sink.log(step, record, "train")
@@ -372,8 +314,49 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
             progress.update(bar, status=evaluator.status(results))
         if step % c.checkpoint_every == 0 or step == c.steps:
             for run in runs:
-                atomic_write_bytes(run.out / "checkpoint.msgpack", flax.serialization.to_bytes(run.state))
+                save_checkpoint(run.out / CHECKPOINT_NAME, run.state)
         progress.update(bar, completed=step)  # the runs behind set the pace
+
+
+@dataclass
+class FinishedRun:
+    """A run opened again from its directory (`open_run`): its resolved config, inputs, trainer (the method
+    and IQL) and the state of its last checkpoint."""
+
+    run_dir: Path
+    inputs: RunInputs
+    trainer: Trainer
+    state: TrainState
+
+    @property
+    def config(self) -> TrainConfig:
+        return self.inputs.config
+
+    @property
+    def data(self) -> FamilyData:
+        return self.inputs.data
+
+    @property
+    def step(self) -> int:
+        return int(self.state.step)
+
+
+def open_run(run_dir: Path, finished: bool = False) -> FinishedRun:
+    """The run in `run_dir` at its last checkpoint, on the data it was trained on (read, never collected):
+    the one way inference (bati infer, novelty) and probes open a run. ValueError naming the directory
+    when it holds no run config or no checkpoint, or (with `finished`) when the run has not reached its
+    last step."""
+    run_dir = Path(run_dir)
+    config = TrainConfig.from_record(read_run_config(run_dir)).resolved()
+    checkpoint = run_dir / CHECKPOINT_NAME
+    if not checkpoint.is_file():
+        raise ValueError(f"{run_dir} has no checkpoint: train (or resume) the run first")
+    inputs = RunInputs.resolve(config, show_progress=False, collect=False)
+    trainer = inputs.trainer()
+    state = load_checkpoint(checkpoint, trainer.init(jax.random.PRNGKey(0)))
+    if finished and int(state.step) != config.steps:
+        raise ValueError(f"{run_dir} is at step {int(state.step)} of {config.steps}: finish the run first")
+    return FinishedRun(run_dir, inputs, trainer, state)
 
 
 def describe_device() -> str:
@@ -420,33 +403,6 @@ def _check_run_dir(out: Path, config: TrainConfig) -> None:
     identity = tuple(k for k in current if k not in NOT_IDENTITY)
     runtime = {"device": describe_device(), "jax_version": jax.__version__, "commit": git_commit()}
     check_run_config(out / "config.json", {**current, "runtime": runtime}, identity, differing_settings)
-
-
-def _load_checkpoint(path: Path, template: TrainState) -> TrainState:
-    """The checkpoint at `path`: ValueError naming the file when it is not a checkpoint at all (damaged:
-    checkpoints are replaced atomically, so a kill never leaves half of one) or holds other networks."""
-    try:
-        raw = flax.serialization.msgpack_restore(path.read_bytes())
-        if not isinstance(raw, dict):
-            raise ValueError(f"it holds a {type(raw).__name__}")
-    except (ValueError, TypeError) as err:
-        raise ValueError(f"{path} is damaged: not a readable checkpoint ({type(err).__name__}: {err}); delete it to "
-                         "restart the run from step 0") from err
-    if isinstance(raw.get("iql"), dict):  # saved before IQL used flax TrainStates
-        raw = {**raw, "iql": upgrade_checkpoint(raw["iql"], int(raw.get("step", 0)))}
-    try:
-        state = flax.serialization.from_state_dict(template, raw)
-        shapes = jax.tree_util.tree_map(jnp.shape, (template, state))
-        if shapes[0] != shapes[1]:
-            raise ValueError("parameter shapes differ")
-    except (ValueError, KeyError, TypeError) as err:
-        raise ValueError(f"{path} does not match this run's networks (another family or method?): {err}") from err
-    return state
-
-
-def load_checkpoint(path: Path, template: TrainState) -> TrainState:
-    """A run's saved TrainState (shaped like `template`); ValueError naming the file if it does not fit."""
-    return _load_checkpoint(path, template)
 
 
 def _drop_records_after(out: Path, step: int) -> None:

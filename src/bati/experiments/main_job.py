@@ -91,14 +91,15 @@ def run_main_job(config: MainJobConfig, show_progress: bool = True) -> dict:
     check_directory(out, "the experiment directory")
     data = ensure_family_data(config.family, get_scale(config.scale).data, 0, config.noise, config.data_root,
                               progress=show_progress, zoo_dir=config.zoo_dir)
-    references = reference_returns(data, zoo_dir=config.zoo_dir)
+    references = reference_returns(data, zoo_dir=config.zoo_dir, family=family)
     oracle = references["expert"]  # the paper's "Oracle (Pre-IQL)"
 
     rows, run_dirs = [], {}
     for method in methods:
         train_config = TrainConfig(family=config.family, method=method, scale=config.scale, steps=steps,
                                    noise=config.noise, data_root=config.data_root, zoo_dir=config.zoo_dir)
-        summaries = train_seeds(train_config, config.seeds, show_progress=show_progress, runs_dir=out)
+        summaries = train_seeds(train_config, config.seeds, show_progress=show_progress, runs_dir=out,
+                                references=references)  # computed once above, for every method
         run_dirs[method] = [out / f"{method}-seed{seed}" for seed in config.seeds]
         keys = ("p_train_return", "p_test_return", "p_train_inference_error", "p_test_inference_error")
         rows.append({"method": method, **{k: [s[k] for s in summaries] for k in keys}})

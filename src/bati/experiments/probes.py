@@ -111,10 +111,9 @@ def read_probe(run_dir: Path, probe: Probe) -> dict | None:
 
 def run_probe(run_dir: Path, probe: Probe) -> dict:
     """Evaluate the run's final checkpoint under `probe` (or read the saved result); see the module."""
-    from bati.data import load_family_data
-    from bati.evaluate import Evaluator
     from bati.config import TrainConfig
-    from bati.train import Trainer, load_checkpoint
+    from bati.evaluate import Evaluator
+    from bati.train import open_run
 
     probe = probe.check()
     run_dir = Path(run_dir)
@@ -135,19 +134,18 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
         atomic_write_json(probe_path(run_dir, probe), out)
         return out
     start = time.perf_counter()
-    data = load_family_data(config.family, config.data_scale, config.data_seed, config.noise, config.data_root,
-                            tasks=config.task_split())
-    trainer = Trainer(config, data)
+    try:
+        run = open_run(run_dir, finished=True)
+    except ValueError as err:
+        raise ProbeError(str(err)) from err
+    data, trainer, state = run.data, run.trainer, run.state
     for name, attribute in (("refine_steps", "refine_steps"), ("latent_samples", "num_latent_samples")):
         if getattr(probe, name) is not None:
             if not hasattr(trainer.method, attribute):
                 raise ProbeError(f"{name}: method {config.method!r} does not infer from a task table")
             setattr(trainer.method, attribute, getattr(probe, name))
-    state = load_checkpoint(run_dir / "checkpoint.msgpack", trainer.init(jax.random.PRNGKey(0)))
-    if int(state.step) != config.steps:
-        raise ProbeError(f"{run_dir} is at step {int(state.step)} of {config.steps}: finish the run first")
     length = probe.eval_context_length or config.eval_context_length
-    evaluator = Evaluator(trainer.method, trainer.iql, data, length, probe.context_mix)
+    evaluator = Evaluator(trainer.method, trainer.iql, data, length, probe.context_mix, family=run.inputs.family)
     k = probe.repeats
     states = jax.tree_util.tree_map(lambda x: jnp.stack([jnp.asarray(x)] * k), state)
     base = jax.random.fold_in(jax.random.PRNGKey(config.seed), 0x9B0E)

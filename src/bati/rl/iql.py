@@ -46,18 +46,6 @@ class IQLState(NamedTuple):
     value: TrainState
 
 
-def upgrade_checkpoint(raw: dict, step: int) -> dict:
-    """An IQLState's state dict saved before IQL used flax TrainStates (separate actor_opt, critic_opt,
-    value_opt and target_critic entries), in today's layout; `step` (the run's) fills each TrainState's
-    counter, which nothing reads. A dict already in today's layout is returned as it is."""
-    if "actor_opt" not in raw:
-        return raw
-    return {"actor": {"step": step, "params": raw["actor"], "opt_state": raw["actor_opt"]},
-            "critic": {"step": step, "params": raw["critic"], "target_params": raw["target_critic"],
-                       "opt_state": raw["critic_opt"]},
-            "value": {"step": step, "params": raw["value"], "opt_state": raw["value_opt"]}}
-
-
 def expectile_loss(diff: jax.Array, expectile: float) -> jax.Array:
     """Asymmetric L2: |expectile - 1(diff < 0)| * diff^2, with diff = Q - V (IQL's expectile, often called tau;
     IQLConfig.tau is the Polyak rate of the target critic)."""
