@@ -4,7 +4,8 @@
     python scripts/same_numbers.py ../before . --data-root DATA --out /tmp/same-numbers
 
 Each checkout trains `--methods` (default bati, csro, dpt) on PointGoal's quick data for `--steps` steps
-(its own code: PYTHONPATH=<checkout>/src); then metrics.jsonl and eval.jsonl (without wall times),
+(its own code: PYTHONPATH=<checkout>/src), with `bati train` (default) or, `--via run`, with the main job
+(`bati run --methods ...`, wherever each checkout puts its run directories); then metrics.jsonl and eval.jsonl (without wall times),
 eval.json (without wall time, commit and config) and every array of the checkpoints (the earlier one read
 in today's layout, bati.checkpoints) are compared. Prints one line per method; exit 1 if any differs.
 """
@@ -32,6 +33,15 @@ def train(checkout: Path, method: str, out: Path, steps: int, data_root: str) ->
                     "--data-root", data_root, "--out-dir", str(out)], env=env, check=True, capture_output=True)
 
 
+def main_job(checkout: Path, methods: list[str], out: Path, steps: int, data_root: str) -> dict[str, Path]:
+    """`bati run` of the checkout; {method: its seed-0 run directory}."""
+    env = {**os.environ, "PYTHONPATH": str(checkout.resolve() / "src")}
+    subprocess.run([sys.executable, "-m", "bati.cli", "run", "--family", "PointGoal", "--methods", *methods,
+                    "--steps", str(steps), "--data-root", data_root, "--out-dir", str(out)], env=env, check=True,
+                   capture_output=True)
+    return {method: next(out.rglob(f"{method}-seed0/eval.json")).parent for method in methods}
+
+
 def records(run: Path, name: str) -> list[dict]:
     return [{k: v for k, v in json.loads(line).items() if k != "wall_time"}
             for line in (run / name).read_text().splitlines()]
@@ -55,12 +65,19 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--data-root", default="data")
     parser.add_argument("--out", type=Path, default=Path("same-numbers"))
+    parser.add_argument("--via", choices=("train", "run"), default="train")
     args = parser.parse_args()
     same = True
+    if args.via == "run":
+        by_checkout = [main_job(checkout, args.methods, args.out / tag, args.steps, args.data_root)
+                       for checkout, tag in ((args.before, "before"), (args.after, "after"))]
     for method in args.methods:
-        runs = [args.out / tag / method for tag in ("before", "after")]
-        for checkout, run in zip((args.before, args.after), runs):
-            train(checkout, method, run, args.steps, args.data_root)
+        if args.via == "run":
+            runs = [found[method] for found in by_checkout]
+        else:
+            runs = [args.out / tag / method for tag in ("before", "after")]
+            for checkout, run in zip((args.before, args.after), runs):
+                train(checkout, method, run, args.steps, args.data_root)
         before, after = (arrays(r) for r in runs)
         checks = {"metrics.jsonl": records(runs[0], "metrics.jsonl") == records(runs[1], "metrics.jsonl"),
                   "eval.jsonl": records(runs[0], "eval.jsonl") == records(runs[1], "eval.jsonl"),

@@ -100,23 +100,21 @@ def test_run_with_an_unknown_method_fails_before_any_work(capsys, tmp_path):
 
 
 def test_run_methods_all_means_every_method():
-    from bati.experiments.main_job import resolve_methods
-    from bati.methods import METHODS
+    from bati.methods import METHODS, method_names
 
-    assert resolve_methods(("all",)) == list(METHODS)
-    assert resolve_methods(("recon", "bati", "recon")) == ["recon", "bati"]
+    assert method_names(("all",)) == list(METHODS)
+    assert method_names(("recon", "bati", "recon")) == ["recon", "bati"]
 
 
 def test_run_reading_line_names_who_holds_and_who_falls():
     from bati.experiments.main_job import reading
 
-    references = {"random": -300.0, "expert": -200.0}
-    rows = [{"method": "bati", "p_train_return": [-250.0], "p_test_return": [-245.0]},
-            {"method": "recon", "p_train_return": [-240.0], "p_test_return": [-290.0]}]
-    line = reading(rows, references, 12_000, 1)
+    rows = [{"method": "bati", "p_train_normalised_mean": 0.5, "p_test_normalised_mean": 0.55, "p_test_mean": -245.0},
+            {"method": "recon", "p_train_normalised_mean": 0.6, "p_test_normalised_mean": 0.1, "p_test_mean": -290.0}]
+    line = reading(rows, 12_000, 1)
     assert "bati holds (0.50 -> 0.55)" in line and "recon falls (0.60 -> 0.10)" in line
     assert "best on p_test: bati." in line and "does not show" not in line and "1 seed(s) decide no ranking" in line
-    rows[1]["p_test_return"] = [-210.0]  # Recon best on p_test: the line says the effect does not show
-    line = reading(rows, references, 3_000, 3)
+    rows[1].update(p_test_normalised_mean=0.9, p_test_mean=-210.0)  # Recon best on p_test: the effect does not show
+    line = reading(rows, 3_000, 3)
     assert "best on p_test: recon. The paper's effect (BATI best under p_test contexts) does not show at 3,000 " \
            "steps and 3 seed(s)" in line and "decide no ranking" not in line

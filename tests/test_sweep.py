@@ -136,10 +136,10 @@ def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(
     out = tmp_path / "sweep"
     real = sweep_module.run_job
 
-    def flaky(config, seeds, runs_dir):
+    def flaky(config, seeds, runs_dir, references=None):
         if config.method == "recon":
             raise RuntimeError("disk on fire")
-        return real(config, seeds, runs_dir)
+        return real(config, seeds, runs_dir, references)
 
     monkeypatch.setattr(sweep_module, "run_job", flaky)
     result = sweep(grid, out, show_progress=False)
@@ -149,10 +149,39 @@ def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(
     assert failed[0]["label"] == "PointGoal/recon/seed0" and failed[0]["error"] == "RuntimeError: disk on fire"
 
     ran = []
-    monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir: ran.append(config.method) or
-                        real(config, seeds, runs_dir))
+    monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None:
+                        ran.append(config.method) or real(config, seeds, runs_dir, references))
     rerun = sweep(grid, out, show_progress=False)
     assert ran == ["recon"] and rerun.count("done") == 1 and rerun.count("skipped") == 1
+
+
+def test_the_reference_returns_are_computed_once_per_collection(tmp_path, local, monkeypatch):
+    calls = []
+    real = train_module.reference_returns
+    monkeypatch.setattr(train_module, "reference_returns", lambda *a, **k: calls.append(1) or real(*a, **k))
+    grid = Grid(methods=("bati", "no-context", "oracle"), seeds=(0,), settings=TINY)
+    sweep(grid, tmp_path / "sweep", show_progress=False)
+    saved = [json.loads((c.config.out_dir / "eval.json").read_text())["reference_returns"]
+             for c in expand(grid, tmp_path / "sweep")]
+    assert len(calls) == 1 and saved[0] == saved[1] == saved[2] and set(saved[0]) == {"random", "expert"}
+
+
+def test_bati_run_is_a_sweep_plus_the_report_and_a_rerun_trains_nothing(tmp_path, local, monkeypatch, capsys):
+    out = tmp_path / "main"
+    args = ["run", "--methods", "bati", "no-context", "--seeds", "0", "1", "--out-dir", str(out),
+            "--settings", *(s for s in TINY if not s.startswith("steps")), "--steps", "10"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "Reading (normalised" in printed and "results in" in printed
+    results = json.loads((out / "results.json").read_text())
+    assert [row["method"] for row in results["rows"]] == ["bati", "no-context"]
+    assert all(row["n_seeds"] == 2 for row in results["rows"]) and results["reading"].startswith("Reading")
+    assert results["reading"] in (out / "results.md").read_text()
+    assert (out / "report" / "report.md").is_file() and (out / "report" / "runs.csv").is_file()
+    assert _statuses(out) == ["done"] * 4
+
+    monkeypatch.setattr(sweep_module, "run_job", lambda *a, **k: pytest.fail("a finished run was trained again"))
+    assert main(args) == 0 and _statuses(out) == ["skipped"] * 4
 
 
 def test_cli_sweep_ends_with_the_report(tmp_path, local, capsys):

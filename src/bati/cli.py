@@ -6,7 +6,6 @@ import contextlib
 import io
 import json
 import sys
-import time
 import warnings
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -18,9 +17,11 @@ from rich.markdown import Markdown
 from rich.markup import escape
 from rich.table import Table
 
-from bati.config import NOT_IDENTITY, ScaleName, TrainConfig
+from bati.config import TrainConfig, rerun_config
 from bati.envs.base import TaskSplit
 from bati.errors import BatiWarning
+from bati.experiments.experiment import ExperimentJob
+from bati.experiments.main_job import MainJob, MainJobFailed
 from bati.experiments.sweep import Grid
 from bati.experts.train import ExpertTrainConfig
 
@@ -53,20 +54,15 @@ class Envs:
     """Per-step noise eps (default: the family's)."""
 
     def run(self) -> None:
-        from bati.envs import FamilyUnavailable, family_names, get_family
+        from bati.envs import families_with_extras, get_family, random_episode
 
         if self.task is not None and not self.family:
             raise UserError("--task needs --family: a task is a parameter of one family "
                             "(e.g. --family PointGoal --task 0.6 0.8)")
-        names = [self.family] if self.family else list(family_names())
-        families, unavailable = [], []
-        for name in names:  # a family whose optional extra is missing is listed with its install hint
-            try:
-                families.append(get_family(name))
-            except FamilyUnavailable as err:
-                if self.family:
-                    raise
-                unavailable.append((name, str(err)))
+        if self.family:  # one family: its missing extra is the error
+            families, unavailable = [get_family(self.family)], []
+        else:
+            families, unavailable = families_with_extras()
         if self.noise is not None:
             for family in families:
                 family.validate_noise(self.noise)
@@ -82,21 +78,11 @@ class Envs:
         console.print(table)
         for _, why in unavailable:
             console.print(escape(why), soft_wrap=True)
-        if self.task is None:
-            return
-        family = families[0]
-        task = self.task[0] if len(self.task) == 1 else list(self.task)
-        env = family.make_env(task, self.noise)
-        env.reset(seed=0)
-        start, total, steps = time.perf_counter(), 0.0, 0
-        done = False
-        while not done:
-            _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
-            total, steps, done = total + reward, steps + 1, terminated or truncated
-        console.print(
-            f"{family.name} task={task} eps={env.unwrapped.noise:g}: random-action return {total:.1f} "
-            f"over {steps} steps ({1e3 * (time.perf_counter() - start):.0f} ms)"
-        )
+        if self.task is not None:
+            task = self.task[0] if len(self.task) == 1 else list(self.task)
+            episode = random_episode(families[0], task, self.noise)
+            console.print(f"{families[0].name} task={task} eps={episode['noise']:g}: random-action return "
+                          f"{episode['return']:.1f} over {episode['steps']} steps ({episode['ms']:.0f} ms)")
 
 
 @dataclass
@@ -198,13 +184,8 @@ class DataInfo:
         from bati.data import store
         from bati.envs import get_family
 
-        family = get_family(self.family)
-        noise = family.validate_noise(self.noise)
-        tasks = self.tasks.checked(family)
-        path = store.collection_dir(self.root, self.family, self.scale, self.seed, noise, tasks)
-        m = store.read_manifest(path, family, self.scale, self.seed, noise, self.root, tasks)
-        # a truncated or missing file is an error here too (sizes: cheap; `bati data verify` reads every byte)
-        store.require_intact(path, m, store.collect_command(family, self.scale, self.seed, noise, self.root, tasks))
+        path, m = store.inspect_collection(self.root, get_family(self.family), self.scale, self.seed, self.noise,
+                                           self.tasks)
         table = Table(title=f"{path} (commit {m['commit']}, {m['transitions']:,} transitions)")
         for column in ("test task", "task", "p_test collector (most different)",
                        "p_train collector (most similar)"):
@@ -240,27 +221,18 @@ class DataVerify:
     def run(self) -> None:
         from bati.data import store
         from bati.envs import get_family
-        from bati.io import check_directory
 
-        check_directory(self.root, "the data root", writable=False)
-        if self.family:
-            get_family(self.family)  # an unknown family is an error, not "nothing found"
-        if not self.root.is_dir():
-            raise store.DatasetNotFoundError(f"no data root {self.root}: nothing to verify")
-        paths = store.find_collections(self.root, self.family, self.scale, self.seed, self.noise)
-        if not paths:
-            given = {k: getattr(self, k) for k in ("family", "scale", "seed", "noise") if getattr(self, k) is not None}
-            which = " with " + ", ".join(f"{k}={v}" for k, v in given.items()) if given else ""
-            raise store.DatasetNotFoundError(f"no collection under {self.root}{which}")
-        damaged = []
-        for path in paths:
-            status, details = store.verify_collection(path)
+        family = get_family(self.family) if self.family else None  # an unknown one is an error, not "none found"
+        results = store.verify_collections(self.root, family, self.scale, self.seed, self.noise)
+        damaged, checked = [], 0
+        for path, status, details in results:
+            checked += 1
             console.print(f"{status}: {escape(str(path))}" + (f": {escape('; '.join(details))}" if details else ""),
                           soft_wrap=True)
             if status == "damaged":
                 damaged.append(path)
         if damaged:
-            raise CollectionDamaged(f"{len(damaged)} of {len(paths)} collection(s) damaged ("
+            raise CollectionDamaged(f"{len(damaged)} of {checked} collection(s) damaged ("
                                     + ", ".join(map(str, damaged)) + "); delete them and re-run `bati data collect`")
 
 
@@ -294,14 +266,7 @@ class Train(TrainConfig):
             raise UserError("--seeds needs at least one seed (e.g. --seeds 0 1 2), or leave it out for --seed")
         config = TrainConfig(**{f.name: getattr(self, f.name) for f in fields(TrainConfig)})
         if self.config is not None:
-            given = [f.name for f in fields(TrainConfig) if f.name not in NOT_IDENTITY
-                     and getattr(config, f.name) != getattr(TrainConfig(), f.name)]
-            if given:
-                raise UserError(f"--config reruns a recorded config exactly: leave out --{given[0].replace('_', '-')} "
-                                "(only --out-dir, --data-root and --seeds may be given with it)")
-            recorded = TrainConfig.from_file(self.config)
-            config = replace(recorded, out_dir=config.out_dir, data_root=config.data_root if config.data_root !=
-                             TrainConfig().data_root else recorded.data_root)
+            config = rerun_config(self.config, config)
         family = config.resolved().family  # checks every setting before any work
         runs_dir = (config.out_dir or Path("runs") / family / config.scale) if self.seeds else None
         if self.seeds:
@@ -322,31 +287,19 @@ class Train(TrainConfig):
 
 
 @dataclass
-class Run:
-    """The main job: data with the shipped experts, train BATI, BATI-R and Recon, evaluate under context shift."""
-
-    family: str = "PointGoal"
-    methods: tuple[str, ...] = ("bati", "bati-r", "recon")
-    """Any of bati, bati-r, bati-auto, recon, unicorn, csro, focal, dpt, oracle, no-context; or `all`."""
-    seeds: tuple[int, ...] = (0,)
-    scale: ScaleName = "quick"
-    steps: int | None = None
-    """Gradient steps (default: quick 12,000, where full BATI has converged on PointGoal; else the scale's)."""
-    noise: float | None = None
-    out_dir: Path | None = None
-    """Experiment directory (default runs/<family>/<scale>)."""
-    data_root: Path = Path("data")
-    zoo_dir: Path | None = None
-    """Where the family's expert is (default: the package zoo)."""
+class Run(MainJob):
+    """The main job: data with the shipped experts, train BATI, BATI-R and Recon (or --methods) as a sweep,
+    evaluate under context shift, then the report (table with rliable intervals, CSVs, curves) and one line
+    reading it. A rerun trains only what is missing."""
 
     def run(self) -> None:
-        from bati.experiments.main_job import MainJobConfig, run_main_job
+        from bati.experiments.main_job import run_main_job
 
-        results = run_main_job(MainJobConfig(self.family, self.methods, self.seeds, self.scale, self.steps,
-                                             self.noise, self.data_root, self.out_dir, self.zoo_dir))
+        results = run_main_job(self, show_progress=console.is_terminal)
         console.print(Markdown(results["markdown"]))
-        console.print(f"wall time {results['wall_time_s'] / 60:.1f} min; results in {results['out_dir']}/"
-                      "(results.json, results.md, learning_curves.png)")
+        console.print(f"wall time {results['wall_time_s'] / 60:.1f} min; results in {results['out_dir']}/ "
+                      f"(results.md, results.json; the report with CSVs and curves in {results['report_dir']}/)",
+                      soft_wrap=True)
 
 
 @dataclass
@@ -415,37 +368,14 @@ class Sweep:
 
 
 @dataclass
-class Experiment:
+class Experiment(ExperimentJob):
     """Run one of the paper's experiments (`bati experiment list` shows them) and write its report."""
 
     name: tyro.conf.Positional[str]
     """The experiment (main, noise, context-length, ...), or `list`."""
-    scale: ScaleName = "quick"
-    seeds: tuple[int, ...] | None = None
-    """Training seeds (default: quick 0; cpu 0 1 2; paper 0 1 2 3 4)."""
-    methods: tuple[str, ...] = ()
-    """Keep only these of the experiment's methods (default: all of them)."""
-    families: tuple[str, ...] = ()
-    """Keep only these of the experiment's families (default: all of them)."""
-    settings: tuple[str, ...] = ()
-    """KEY=VALUE TrainConfig settings for every cell, e.g. `steps=12000` (not those the experiment sets)."""
-    out_dir: Path | None = None
-    """Results directory shared by the experiments (default: results/<scale>/experiments); the report goes
-    to OUT_DIR/<name>/."""
-    data_root: Path = Path("data")
-    workers: int = 1
-    """Jobs at a time (local: processes; several may share one GPU)."""
-    backend: Literal["local", "ray"] = "local"
-    address: str | None = None
-    """Ray cluster address (backend ray; default: a local Ray)."""
-    report_only: bool = False
-    """Train nothing: write the report from the cells already finished."""
 
     def run(self) -> None:
-        from bati.experiments.specs import (SPECS, default_out_dir, describe, get_spec, plan_experiment,
-                                            run_experiment, status_file)
-        from bati.experiments.sweep import record_lock
-        from bati.experiments.report import experiment_report
+        from bati.experiments.experiment import experiment_list, run_experiment_job
 
         if self.name == "list":
             table = Table(title="bati experiments (cells: runs at the quick / cpu / paper scale; probes: quick)")
@@ -454,59 +384,28 @@ class Experiment:
             for column in ("quick", "cpu", "paper", "probes"):
                 table.add_column(column, justify="right", no_wrap=True)
             table.add_column("what", ratio=1)
-            for spec in SPECS.values():
-                counts = {scale: describe(spec, scale) for scale in ("quick", "cpu", "paper")}
-                table.add_row(spec.name, counts["quick"]["paper"], *(str(c["cells"]) for c in counts.values()),
-                              str(counts["quick"]["probes"]), escape(spec.title))
+            for row in experiment_list():
+                table.add_row(row["name"], row["paper"], *(str(row["cells"][k]) for k in ("quick", "cpu", "paper")),
+                              str(row["probes"]), escape(row["title"]))
             console.print(table)
             return
-        from bati.report.stats import require_rliable
-
-        require_rliable()  # the report at the end needs it: say so before hours of training
-        spec = get_spec(self.name)
-        out = self.out_dir or default_out_dir(self.scale)
-        plan = plan_experiment(spec, self.scale, out, seeds=self.seeds, settings=self.settings, methods=self.methods,
-                               families=self.families, data_root=self.data_root)
-        # The report covers every cell of the experiment at this scale, finished by this command or another.
-        whole = plan_experiment(spec, self.scale, out, seeds=self.seeds, settings=self.settings,
-                                data_root=self.data_root)
-        if self.report_only:  # reads finished cells only, so it needs no lock: a sweep may be running
-            report = experiment_report(whole, out / spec.name, command=self.command_line(whole=True))
-            console.print(Markdown(report["markdown"]))
-            console.print(f"experiment {spec.name}: report in {out / spec.name}/ (nothing trained)", soft_wrap=True)
+        outcome = run_experiment_job(self, show_progress=console.is_terminal,
+                                     on_probe=lambda label: console.print(f"probe {label}") if console.is_terminal
+                                     else None)
+        console.print(Markdown(outcome.report["markdown"]))
+        if outcome.run is None:
+            console.print(f"experiment {self.name}: report in {outcome.report_dir}/ (nothing trained)", soft_wrap=True)
             return
-        with record_lock(out, status_file(spec)):  # one process at a time runs and reports this experiment here
-            result = run_experiment(plan, out, data_root=self.data_root, workers=self.workers, backend=self.backend,
-                                    address=self.address, show_progress=console.is_terminal, locked=True,
-                                    on_probe=lambda label: console.print(f"probe {label}") if console.is_terminal
-                                    else None)
-            report = experiment_report(whole, out / spec.name, command=self.command_line(whole=True))
-        sweep = result.sweep
+        sweep, run = outcome.run.sweep, outcome.run
         counts = {s: sweep.count(s) for s in ("done", "skipped", "failed")}
-        console.print(Markdown(report["markdown"]))
-        console.print(f"experiment {spec.name}: {counts['done']} cell(s) run, {counts['skipped']} already done, "
-                      f"{counts['failed']} failed, {result.probes_done} probe(s), in {result.wall_time_s / 60:.1f} min; "
-                      f"report in {out / spec.name}/", soft_wrap=True)
-        for label, error in {**sweep.errors, **result.probe_errors}.items():
+        console.print(f"experiment {self.name}: {counts['done']} cell(s) run, {counts['skipped']} already done, "
+                      f"{counts['failed']} failed, {run.probes_done} probe(s), in {run.wall_time_s / 60:.1f} min; "
+                      f"report in {outcome.report_dir}/", soft_wrap=True)
+        for label, error in outcome.failures.items():
             error_console.print(f"[red]failed[/] {label}: {escape(error)}", soft_wrap=True)
-        if counts["failed"] or result.probe_errors:
-            raise SweepFailed(f"{counts['failed']} cell(s) and {len(result.probe_errors)} probe(s) failed; rerun the "
+        if outcome.failures:
+            raise SweepFailed(f"{counts['failed']} cell(s) and {len(run.probe_errors)} probe(s) failed; rerun the "
                               "same command to retry them")
-
-    def command_line(self, whole: bool = False) -> str:
-        """The command that reproduces this experiment (options that differ from the defaults; `whole`:
-        all of its methods and families, as its report covers them)."""
-        parts = ["bati experiment", self.name, "--scale", self.scale]
-        for name in ("seeds", "settings") if whole else ("seeds", "methods", "families", "settings"):
-            value = getattr(self, name)
-            if value:
-                parts += [f"--{name}", *map(str, value)]
-        for name, default in (("out_dir", None), ("data_root", Path("data")), ("workers", 1), ("backend", "local"),
-                              ("address", None)):
-            value = getattr(self, name)
-            if value != default:
-                parts += [f"--{name.replace('_', '-')}", str(value)]
-        return " ".join(parts)
 
 
 @dataclass
@@ -550,15 +449,10 @@ class Claims:
     """Where the page goes (default: ROOT/docs/claims.md)."""
 
     def run(self) -> None:
-        from bati.experiments.claims import CLAIMS, claims_markdown, decide, overall
-        from bati.io import atomic_write_text
+        from bati.experiments.claims import write_claims
 
-        findings = decide(self.root)
-        out = self.out or self.root / "docs" / "claims.md"
-        command = "bati claims" + (f" --root {self.root}" if self.root != Path(".") else "")
-        atomic_write_text(out, claims_markdown(findings, command))
-        for claim in CLAIMS:
-            verdict, scale = overall(findings, claim)
+        out, verdicts = write_claims(self.root, self.out)
+        for claim, verdict, scale in verdicts:
             console.print(f"{claim.name} {verdict} (at {scale}): {claim.text}", soft_wrap=True)
         console.print(f"claims page: {out}")
 
@@ -589,7 +483,7 @@ def main(argv: list[str] | None = None) -> int:
         warnings.showwarning = _show_warning(warnings.showwarning)
         try:
             command.run()
-        except (SweepFailed, CollectionDamaged) as err:
+        except (SweepFailed, CollectionDamaged, MainJobFailed) as err:
             return _error(str(err), 1)
         except OSError as err:  # before ValueError: FileNotFoundError, PermissionError, disk full, ...
             return _error(describe_os_error(err), 2)

@@ -279,6 +279,7 @@ class TrainConfig:
             checkpoint_every=pick(self.checkpoint_every, eval_every),
             out_dir=Path(out),
             data_root=Path(self.data_root),
+            zoo_dir=None if self.zoo_dir is None else Path(self.zoo_dir),
             iql=replace(self.iql, hidden_dims=tuple(rl_dims), discrete=family.discrete_actions),
             **{name: _for_family(getattr(self, name), family.record) for name in method_sections()},
         )
@@ -292,6 +293,21 @@ class TrainConfig:
             raise ValueError(f"eval_every ({resolved.eval_every}) and checkpoint_every ({resolved.checkpoint_every}) "
                              f"must be multiples of log_every ({self.log_every})")
         return resolved
+
+
+def rerun_config(recorded: str | Path, given: TrainConfig) -> TrainConfig:
+    """`bati train --config`: the config a run directory recorded (its directory or config.json), exactly,
+    with `given`'s out_dir and, when not the default, data_root. Any other setting of `given` that differs
+    from the defaults is a ValueError naming it (a rerun that silently changed it would not be one)."""
+    default = TrainConfig()
+    changed = [f.name for f in fields(TrainConfig) if f.name not in NOT_IDENTITY
+               and getattr(given, f.name) != getattr(default, f.name)]
+    if changed:
+        raise ValueError(f"--config reruns a recorded config exactly: leave out --{changed[0].replace('_', '-')} "
+                         "(only --out-dir, --data-root and --seeds may be given with it)")
+    config = TrainConfig.from_file(recorded)
+    return replace(config, out_dir=given.out_dir,
+                   data_root=given.data_root if given.data_root != default.data_root else config.data_root)
 
 
 def nested_sections() -> dict[str, type]:

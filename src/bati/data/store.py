@@ -252,6 +252,36 @@ def verify_collection(path: Path) -> tuple[str, list[str]]:
     return "ok", [f"{len(manifest['files'])} files match their size and sha256"]
 
 
+def inspect_collection(root: str | Path, family: TaskFamily, scale: str, seed: int, noise: float | None,
+                       tasks: TaskSplit) -> tuple[Path, dict]:
+    """`bati data info`: the directory and manifest of a complete collection whose files all have their
+    recorded sizes (cheap; `verify_collections` reads every byte); DatasetNotFoundError / DatasetError."""
+    noise = family.validate_noise(noise)
+    tasks = tasks.checked(family)
+    path = collection_dir(root, family.name, scale, seed, noise, tasks)
+    manifest = read_manifest(path, family, scale, seed, noise, root, tasks)
+    require_intact(path, manifest, collect_command(family, scale, seed, noise, root, tasks))
+    return path, manifest
+
+
+def verify_collections(root: Path, family: TaskFamily | None = None, scale: str | None = None,
+                       seed: int | None = None, noise: float | None = None) -> Iterator[tuple[Path, str, list[str]]]:
+    """`bati data verify`: (path, status, details) of each collection under `root` matching the filters
+    (`verify_collection`), one at a time as its files are hashed. Nothing to verify is a
+    DatasetNotFoundError, raised before the first."""
+    from bati.io import check_directory
+
+    check_directory(root, "the data root", writable=False)
+    if not Path(root).is_dir():
+        raise DatasetNotFoundError(f"no data root {root}: nothing to verify")
+    paths = find_collections(root, family.name if family else None, scale, seed, noise)
+    if not paths:
+        given = {"family": family.name if family else None, "scale": scale, "seed": seed, "noise": noise}
+        which = ", ".join(f"{k}={v}" for k, v in given.items() if v is not None)
+        raise DatasetNotFoundError(f"no collection under {root}" + (f" with {which}" if which else ""))
+    return ((path, *verify_collection(path)) for path in paths)
+
+
 _NAME = re.compile(r"^(?P<scale>[^-]+)-seed(?P<seed>\d+)-eps(?P<noise>[^-]+)")
 
 

@@ -116,6 +116,35 @@ def get_family(name: str) -> TaskFamily:
     return getattr(loaded, family_class)()
 
 
+def families_with_extras(names: tuple[str, ...] | None = None) -> tuple[list[TaskFamily], list[tuple[str, str]]]:
+    """The families `names` (default: all) that can be built here, and (name, install hint) for those whose
+    optional extra is missing (`bati envs`)."""
+    families, unavailable = [], []
+    for name in names or family_names():
+        try:
+            families.append(get_family(name))
+        except FamilyUnavailable as err:
+            unavailable.append((name, str(err)))
+    return families, unavailable
+
+
+def random_episode(family: TaskFamily, task: Task, noise: float | None = None, seed: int = 0) -> dict:
+    """One episode of uniformly random actions in one task (`bati envs --task`): its return, length, the
+    eps it ran with and its wall time in ms."""
+    import time
+
+    env = family.make_env(task, noise)
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    start, total, steps, done = time.perf_counter(), 0.0, 0, False
+    while not done:
+        _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+        total, steps, done = total + float(reward), steps + 1, terminated or truncated
+    eps = env.unwrapped.noise
+    env.close()
+    return {"return": total, "steps": steps, "noise": eps, "ms": 1e3 * (time.perf_counter() - start)}
+
+
 def make_env(name: str, task: Task, noise: float | None = None, **kwargs) -> gym.Env:
     """Shortcut for ``get_family(name).make_env(task, noise)``."""
     return get_family(name).make_env(task, noise, **kwargs)
@@ -151,5 +180,5 @@ _register()
 _quiet_mujoco_deprecation()
 
 __all__ = ["EPISODE_LENGTH", "FAMILY_NAMES", "FamilyRecord", "FamilyUnavailable", "Task", "TaskEnvMixin", "TaskError",
-           "TaskFamily", "TaskSplit", "family_available", "family_names", "get_family", "make_env", "register_family",
-           "scalar_task"]
+           "TaskFamily", "TaskSplit", "families_with_extras", "family_available", "family_names", "get_family",
+           "make_env", "random_episode", "register_family", "scalar_task"]

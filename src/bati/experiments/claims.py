@@ -395,3 +395,15 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
             lines += [f"- {line}" for line in f.lines] or ["- (no comparison possible)"]
             lines.append("")
     return "\n".join(lines).rstrip() + "\n"
+
+
+def write_claims(root: Path = Path("."), out: Path | None = None) -> tuple[Path, list[tuple[Claim, str, str]]]:
+    """`bati claims`: decide every claim from the result files under `root`, write the page (default
+    ROOT/docs/claims.md, atomically) and return its path and (claim, verdict, scale) per claim."""
+    from bati.io import atomic_write_text
+
+    findings = decide(root)
+    out = out or Path(root) / "docs" / "claims.md"
+    command = "bati claims" + (f" --root {root}" if Path(root) != Path(".") else "")
+    atomic_write_text(out, claims_markdown(findings, command))
+    return out, [(claim, *overall(findings, claim)) for claim in CLAIMS]

@@ -110,14 +110,14 @@ def config_digest(config: TrainConfig, exclude: Iterable[str] = ()) -> str:
 def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Cell]:
     """The grid's cells, each a resolved config with its run directory; bad values raise SweepError."""
     from bati.envs import get_family
-    from bati.experiments.main_job import resolve_methods
+    from bati.methods import method_names
 
     for axis in ("families", "methods", "seeds", "scales"):
         if not getattr(grid, axis):
             raise SweepError(f"the grid's {axis} are empty: give at least one")
     overrides = grid.overrides()
     try:
-        methods = resolve_methods(tuple(grid.methods))
+        methods = method_names(grid.methods)
         families = [get_family(name).name for name in dict.fromkeys(grid.families)]
         cells = []
         for family in families:
@@ -179,12 +179,33 @@ def make_jobs(cells: list[Cell]) -> list[Job]:
     return list(jobs.values())
 
 
-def run_job(config: TrainConfig, seeds: tuple[int, ...], runs_dir: Path) -> list[dict]:
-    """What a worker runs: the job's seeds in one program (no progress bars: the sweep shows its table)."""
+def run_job(config: TrainConfig, seeds: tuple[int, ...], runs_dir: Path, references: dict | None = None) -> list[dict]:
+    """What a worker runs: the job's seeds in one program (no progress bars: the sweep shows its table).
+    `references`: the collection's random and expert returns when an earlier job computed them."""
     from bati.train import train_seeds
 
-    summaries = train_seeds(replace(config, out_dir=None), seeds, show_progress=False, runs_dir=runs_dir)
-    return [{k: s[k] for k in ("seed", "p_train_return", "p_test_return")} for s in summaries]
+    summaries = train_seeds(replace(config, out_dir=None), seeds, show_progress=False, runs_dir=runs_dir,
+                            references=references)
+    return [{k: s[k] for k in ("seed", "p_train_return", "p_test_return", "reference_returns") if k in s}
+            for s in summaries]
+
+
+def collection_key(config: TrainConfig) -> str:
+    """What a run's reference returns depend on: its collection (family, sizes, seed, eps, tasks, root) and
+    the expert (zoo); jobs with the same key share them (computed by the first, passed to the others)."""
+    return json.dumps([config.family, config.data_scale, config.data_seed, config.noise, str(config.data_root),
+                       config.episodes_per_task, config.context_episodes, str(config.task_split()),
+                       str(config.zoo_dir), config.record().get("family_version"), bool(config.datasets)])
+
+
+def check_experts(cells: list[Cell]) -> None:
+    """Every run needs its family's expert (reference returns, the collection, DPT's labels): a missing one
+    is the zoo's one-line error before anything is written."""
+    from bati.data.collect import load_expert
+
+    for family, zoo_dir in sorted({(c.config.family, c.config.zoo_dir) for c in cells if not c.config.datasets},
+                                  key=str):
+        load_expert(family, zoo_dir)
 
 
 def prepare_data(cells: list[Cell], progress: bool) -> None:
@@ -193,10 +214,10 @@ def prepare_data(cells: list[Cell], progress: bool) -> None:
     from bati.data.collect import collect
 
     needed = {(c.family, c.data_scale, c.data_seed, c.noise, str(c.data_root), c.episodes_per_task, c.context_episodes,
-               c.task_split()) for c in (cell.config for cell in cells)}
-    for family, scale, seed, noise, root, n_episodes, n_context, tasks in sorted(needed, key=str):
+               c.task_split(), None if c.zoo_dir is None else str(c.zoo_dir)) for c in (cell.config for cell in cells)}
+    for family, scale, seed, noise, root, n_episodes, n_context, tasks, zoo_dir in sorted(needed, key=str):
         collect(family, scale, seed, noise, root, n_episodes=n_episodes, n_context_episodes=n_context,
-                progress=progress, tasks=tasks)
+                progress=progress, tasks=tasks, zoo_dir=zoo_dir)
 
 
 # --- the sweep -------------------------------------------------------------------------------
@@ -257,16 +278,24 @@ def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("dat
                              **({"error": errors[c.id]} if c.id in errors else {})} for c in cells},
         })
 
+    check_experts(pending)
     record()
     if jobs:
         prepare_data(pending, progress=show_progress)
     table = LiveTable(cells, status, show_progress)
     with table:
-        def finished(job: Job, error: str | None) -> None:
+        references: dict[str, dict] = {}  # collection -> its random and expert returns, computed once
+
+        def arguments(job: Job) -> tuple:
+            return job.config, job.seeds, job.config.out_dir.parent, references.get(collection_key(job.config))
+
+        def finished(job: Job, error: str | None, summaries: list[dict] | None = None) -> None:
             for cell in job.cells:
                 status[cell.id] = "failed" if error else "done"
                 if error:
                     errors[cell.id] = error
+            if summaries and summaries[0].get("reference_returns"):
+                references.setdefault(collection_key(job.config), summaries[0]["reference_returns"])
             record()
             table.refresh()
 
@@ -276,9 +305,9 @@ def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("dat
             table.refresh()
 
         if backend == "ray":
-            _run_on_ray(ray, jobs, workers, running, finished)
+            _run_on_ray(ray, jobs, workers, arguments, running, finished)
         else:
-            _run_locally(jobs, workers, running, finished)
+            _run_locally(jobs, workers, arguments, running, finished)
     return SweepResult(out_dir, {c.id: status[c.id] for c in cells}, errors, time.perf_counter() - start)
 
 
@@ -286,17 +315,17 @@ def _describe(err: BaseException) -> str:
     return f"{type(err).__name__}: {err}"
 
 
-def _run_locally(jobs: list[Job], workers: int, running: Callable, finished: Callable) -> None:
+def _run_locally(jobs: list[Job], workers: int, arguments: Callable, running: Callable, finished: Callable) -> None:
     if workers == 1:  # in this process, one job after the other
         for job in jobs:
             running(job)
             try:
-                run_job(job.config, job.seeds, job.config.out_dir.parent)
+                summaries = run_job(*arguments(job))
             except Exception as err:  # a failed job is recorded; the sweep goes on
                 traceback.print_exc()
                 finished(job, _describe(err))
             else:
-                finished(job, None)
+                finished(job, None, summaries)
         return
     from concurrent.futures import FIRST_COMPLETED, wait
 
@@ -307,12 +336,12 @@ def _run_locally(jobs: list[Job], workers: int, running: Callable, finished: Cal
         while queue or futures:
             while queue and len(futures) < workers:
                 job = queue.pop(0)
-                futures[pool.submit(run_job, job.config, job.seeds, job.config.out_dir.parent)] = job
+                futures[pool.submit(run_job, *arguments(job))] = job
                 running(job)
             done, _ = wait(futures, return_when=FIRST_COMPLETED)
             for future in done:
                 err = future.exception()
-                finished(futures.pop(future), _describe(err) if err else None)
+                finished(futures.pop(future), _describe(err) if err else None, None if err else future.result())
 
 
 def connect_ray(address: str | None):
@@ -335,13 +364,14 @@ def connect_ray(address: str | None):
     return ray
 
 
-def _run_on_ray(ray, jobs: list[Job], workers: int, running: Callable, finished: Callable) -> None:
+def _run_on_ray(ray, jobs: list[Job], workers: int, arguments: Callable, running: Callable,
+                finished: Callable) -> None:
     remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
     futures = {}
     for job in jobs:  # Ray schedules them on the cluster's CPUs; at most `workers` run from this sweep
         while len(futures) >= workers:
             _ray_collect(ray, futures, finished)
-        futures[remote.remote(job.config, job.seeds, job.config.out_dir.parent)] = job
+        futures[remote.remote(*arguments(job))] = job
         running(job)
     while futures:
         _ray_collect(ray, futures, finished)
@@ -351,12 +381,12 @@ def _ray_collect(ray, futures: dict, finished: Callable) -> None:
     (ref,), _ = ray.wait(list(futures), num_returns=1)
     job = futures.pop(ref)
     try:
-        ray.get(ref)
+        summaries = ray.get(ref)
     except Exception as err:  # RayTaskError wraps the job's own exception
         cause = getattr(err, "cause", None) or err
         finished(job, _describe(cause))
     else:
-        finished(job, None)
+        finished(job, None, summaries)
 
 
 def check_out_dir(out_dir: Path) -> None:

@@ -17,6 +17,17 @@ METHODS = {"bati": BATI, "bati-r": BATIReward, "bati-auto": BATIAuto, "recon": R
            "focal": FOCAL, "er-trl": ERTRL, "dpt": DPT, "oracle": Oracle, "no-context": NoContext}
 
 
+def method_names(names: tuple[str, ...] | list[str]) -> list[str]:
+    """The methods `names` stands for, in order, without repeats; `all` stands for every method. Unknown
+    names are a ValueError naming them and the choices."""
+    unknown = [m for m in dict.fromkeys(names) if m != "all" and m not in METHODS]  # `all bogus` too
+    chosen = list(METHODS) if "all" in names else list(dict.fromkeys(names))
+    if unknown or not chosen:
+        raise ValueError(f"unknown method(s) {', '.join(map(repr, unknown)) or '(none given)'}; "
+                         f"choose from: {', '.join(METHODS)}, or all")
+    return chosen
+
+
 def make_method(name: str, spec: MethodSpec, config=None) -> TaskInference:
     """Method `name` for data described by `spec`, with its hyperparameters `config` (an instance of
     its `Config`; default: the Config's defaults, family-dependent ones from `spec.family`)."""
@@ -25,4 +36,4 @@ def make_method(name: str, spec: MethodSpec, config=None) -> TaskInference:
     return METHODS[name](spec, config)
 
 
-__all__ = ["METHODS", "MethodSpec", "TaskInference", "make_method"]
+__all__ = ["METHODS", "MethodSpec", "TaskInference", "make_method", "method_names"]

@@ -1,0 +1,105 @@
+"""`bati experiment NAME`: one of the paper's experiments end to end (plan, sweep, probes, report).
+
+`ExperimentJob` is the command's settings (the CLI is this dataclass); `run_experiment_job` plans the
+experiment at its scale, runs what is not finished under the experiment's sweep record and writes its
+report over every finished cell of the experiment, trained by this command or another.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Literal
+
+from bati.config import ScaleName
+from bati.experiments.report import experiment_report
+from bati.experiments.specs import (SPECS, ExperimentResult, default_out_dir, describe, get_spec, plan_experiment,
+                                    run_experiment, status_file)
+from bati.experiments.sweep import record_lock
+
+
+@dataclass
+class ExperimentJob:
+    """Run one of the paper's experiments (`bati experiment list` shows them) and write its report."""
+
+    name: str
+    """The experiment (main, noise, context-length, ...), or `list`."""
+    scale: ScaleName = "quick"
+    seeds: tuple[int, ...] | None = None
+    """Training seeds (default: quick 0; cpu 0 1 2; paper 0 1 2 3 4)."""
+    methods: tuple[str, ...] = ()
+    """Keep only these of the experiment's methods (default: all of them)."""
+    families: tuple[str, ...] = ()
+    """Keep only these of the experiment's families (default: all of them)."""
+    settings: tuple[str, ...] = ()
+    """KEY=VALUE TrainConfig settings for every cell, e.g. `steps=12000` (not those the experiment sets)."""
+    out_dir: Path | None = None
+    """Results directory shared by the experiments (default: results/<scale>/experiments); the report goes
+    to OUT_DIR/<name>/."""
+    data_root: Path = Path("data")
+    workers: int = 1
+    """Jobs at a time (local: processes; several may share one GPU)."""
+    backend: Literal["local", "ray"] = "local"
+    address: str | None = None
+    """Ray cluster address (backend ray; default: a local Ray)."""
+    report_only: bool = False
+    """Train nothing: write the report from the cells already finished."""
+
+    def command_line(self, whole: bool = False) -> str:
+        """The command that reproduces this experiment (options that differ from the defaults; `whole`:
+        all of its methods and families, as its report covers them)."""
+        parts = ["bati experiment", self.name, "--scale", self.scale]
+        for name in ("seeds", "settings") if whole else ("seeds", "methods", "families", "settings"):
+            value = getattr(self, name)
+            if value:
+                parts += [f"--{name}", *map(str, value)]
+        for name, default in (("out_dir", None), ("data_root", Path("data")), ("workers", 1), ("backend", "local"),
+                              ("address", None)):
+            value = getattr(self, name)
+            if value != default:
+                parts += [f"--{name.replace('_', '-')}", str(value)]
+        return " ".join(parts)
+
+
+@dataclass
+class ExperimentOutcome:
+    report: dict
+    """experiment_report's result (markdown, files) over every finished cell of the experiment."""
+    report_dir: Path
+    run: ExperimentResult | None = None
+    """What this command trained and probed (None with report_only)."""
+    failures: dict[str, str] = field(default_factory=dict)
+    """Failed cells and probes: label -> error."""
+
+
+def run_experiment_job(job: ExperimentJob, show_progress: bool = True,
+                       on_probe: Callable[[str], None] | None = None) -> ExperimentOutcome:
+    """Plan, run and report one experiment; bad settings raise ExperimentError before any work."""
+    from bati.report.stats import require_rliable
+
+    require_rliable()  # the report at the end needs it: say so before hours of training
+    spec = get_spec(job.name)
+    out = job.out_dir or default_out_dir(job.scale)
+    plan = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=job.settings, methods=job.methods,
+                           families=job.families, data_root=job.data_root)
+    # The report covers every cell of the experiment at this scale, finished by this command or another.
+    whole = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=job.settings, data_root=job.data_root)
+    command = job.command_line(whole=True)
+    if job.report_only:  # reads finished cells only, so it needs no lock: a sweep may be running
+        return ExperimentOutcome(experiment_report(whole, out / spec.name, command=command), out / spec.name)
+    with record_lock(out, status_file(spec)):  # one process at a time runs and reports this experiment here
+        result = run_experiment(plan, out, data_root=job.data_root, workers=job.workers, backend=job.backend,
+                                address=job.address, show_progress=show_progress, locked=True, on_probe=on_probe)
+        report = experiment_report(whole, out / spec.name, command=command)
+    return ExperimentOutcome(report, out / spec.name, result, {**result.sweep.errors, **result.probe_errors})
+
+
+def experiment_list() -> list[dict]:
+    """Every experiment: name, paper source, title, probes (quick) and cells per scale {quick, cpu, paper}
+    (`bati experiment list`)."""
+    rows = []
+    for spec in SPECS.values():
+        counts = {scale: describe(spec, scale) for scale in ("quick", "cpu", "paper")}
+        rows.append({"name": spec.name, "paper": counts["quick"]["paper"], "title": spec.title,
+                     "probes": counts["quick"]["probes"], "cells": {scale: c["cells"] for scale, c in counts.items()}})
+    return rows
