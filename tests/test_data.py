@@ -276,7 +276,7 @@ def test_crash_leaves_nothing_and_rerun_succeeds(tmp_path, monkeypatch):
     # a target directory without a manifest is incomplete (or foreign): it is replaced
     stale = tmp_path / FAMILY / ".quick-seed0-eps1.partial-999999999-dead"
     (stale / "train-00-v0").mkdir(parents=True)
-    target = store.collection_dir(tmp_path, FAMILY, "quick", 0, 1.0)
+    target = store.collection_dir(tmp_path, get_family(FAMILY), "quick", 0, 1.0)
     (target / "train-00-v0").mkdir(parents=True)
     (target / "junk.txt").write_text("left over")
     with pytest.raises(FileNotFoundError):
@@ -444,7 +444,7 @@ def test_unknown_family_and_scale(tmp_path):
 @pytest.fixture
 def tiny_copy(tiny_seed0, tmp_path):
     """A copy of the tiny collection (the tests below damage it)."""
-    path = store.collection_dir(tmp_path, FAMILY, "quick", 0, 1.0)
+    path = store.collection_dir(tmp_path, get_family(FAMILY), "quick", 0, 1.0)
     shutil.copytree(tiny_seed0.path, path, ignore=shutil.ignore_patterns("arrays.npz"))
     return path
 

@@ -12,6 +12,7 @@ from bati.data import store
 from bati.data.collect import collect
 from bati.data.store import DatasetError
 from bati.envs.point import PointGoalFamily
+from bati.envs import get_family
 from bati.experts import load
 from bati.experts.zoo import ZOO_DIR
 
@@ -26,7 +27,7 @@ def test_data_of_another_version_lives_apart_and_is_refused(tmp_path, monkeypatc
     first = collect("PointGoal", root=tmp_path, n_episodes=2, n_context_episodes=1, progress=False, workers=1)
     assert first.path.name == "quick-seed0-eps1" and first.manifest["family_version"] == 1
     monkeypatch.setattr(PointGoalFamily, "record", dataclasses.replace(PointGoalFamily.record, version=2))
-    path = store.collection_dir(tmp_path, "PointGoal", "quick", 0, 1.0)
+    path = store.collection_dir(tmp_path, get_family("PointGoal"), "quick", 0, 1.0)
     assert path.name == "quick-seed0-eps1-v2"  # the version-1 collection stays where it was, untouched
     shutil.copytree(first.path, path)  # a version-1 collection where version 2's belongs
     with pytest.raises(DatasetError, match="env version 1; this bati's PointGoal is version 2"):

@@ -418,8 +418,6 @@ class Report:
     """Where report.md, the CSVs and PNGs go (default: RESULTS_DIR/report)."""
 
     def run(self) -> None:
-        import warnings
-
         from bati.report import ReportWarning, build_report
 
         caught: list[warnings.WarningMessage] = []

@@ -93,7 +93,8 @@ def _check_paths(configs: list[TrainConfig]) -> None:
     c = configs[0]
     if c.datasets:  # a user's own datasets: read, never written
         return
-    collection = store.collection_dir(c.data_root, c.family, c.data_scale, c.data_seed, c.noise, c.task_split())
+    collection = store.collection_dir(c.data_root, family_of(c.family), c.data_scale, c.data_seed, c.noise,
+                                      c.task_split())
     check_directory(c.data_root, "the data root", writable=not (collection / store.MANIFEST).is_file())
 
 

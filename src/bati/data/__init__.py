@@ -3,8 +3,9 @@
 >>> from bati.data import ensure_family_data, sample_batch, sample_contexts
 >>> data = ensure_family_data("PointGoal", scale="quick", seed=0)
 
-Names are imported lazily: `import bati.data` and the collection code load neither JAX nor MuJoCo
-(the `bati` CLI does load JAX, through its configs).
+Names are imported lazily: `import bati.data` loads neither JAX nor MuJoCo; the collection code
+(`bati.data.collect`) loads MuJoCo, through the envs, but not JAX (the `bati` CLI does load JAX, through
+its configs).
 """
 
 from __future__ import annotations

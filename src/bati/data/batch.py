@@ -194,7 +194,7 @@ def load_family_data(
     fam = get_family(family)
     noise = fam.validate_noise(noise)
     tasks = (tasks or TaskSplit()).checked(fam)
-    path = store.collection_dir(root, family, scale, seed, noise, tasks)
+    path = store.collection_dir(root, fam, scale, seed, noise, tasks)
     manifest = store.read_manifest(path, fam, scale, seed, noise, root, tasks)
     redo = store.collect_command(fam, scale, seed, noise, root, tasks)
     store.require_intact(path, manifest, redo)  # sizes only (a stat per file): a truncated or missing file

@@ -106,7 +106,7 @@ def collect(
     default_n, default_ctx = scale_sizes(fam, scale)
     n_episodes = default_n if n_episodes is None else int(n_episodes)
     n_context_episodes = default_ctx if n_context_episodes is None else int(n_context_episodes)
-    target = store.collection_dir(root, family, scale, seed, noise, tasks)
+    target = store.collection_dir(root, fam, scale, seed, noise, tasks)
 
     cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks)
     if cached is not None:

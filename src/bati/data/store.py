@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from bati.envs import TaskFamily, TaskSplit, get_family
+from bati.envs import TaskFamily, TaskSplit
 from bati.io import pid_alive
 
 MANIFEST = "manifest.json"
@@ -59,14 +59,14 @@ def collection_name(scale: str, seed: int, noise: float) -> str:
     return f"{scale}-seed{seed}-eps{noise:g}"
 
 
-def collection_dir(root: str | Path, family: str, scale: str, seed: int, noise: float,
+def collection_dir(root: str | Path, family: TaskFamily, scale: str, seed: int, noise: float,
                    tasks: TaskSplit | None = None) -> Path:
     """`<root>/<Family>/<scale>-seed<S>-eps<eps>[<split>][-v<version>]` (noise already validated / defaulted);
     a non-default task split adds its label, e.g. `-tasks10x30` or `-train0to3.14159-test3.14159to6.28319`,
     and an env version after the first its number (so the data of an earlier version stays where it was)."""
     label = "" if tasks is None else tasks.label()
-    version = get_family(family).record.version
-    return Path(root) / family / (collection_name(scale, seed, noise) + label + (f"-v{version}" if version > 1 else ""))
+    version = family.record.version
+    return Path(root) / family.name / (collection_name(scale, seed, noise) + label + (f"-v{version}" if version > 1 else ""))
 
 
 def dataset_name(split: str, index: int) -> str:
@@ -258,7 +258,7 @@ def inspect_collection(root: str | Path, family: TaskFamily, scale: str, seed: i
     recorded sizes (cheap; `verify_collections` reads every byte); DatasetNotFoundError / DatasetError."""
     noise = family.validate_noise(noise)
     tasks = tasks.checked(family)
-    path = collection_dir(root, family.name, scale, seed, noise, tasks)
+    path = collection_dir(root, family, scale, seed, noise, tasks)
     manifest = read_manifest(path, family, scale, seed, noise, root, tasks)
     require_intact(path, manifest, collect_command(family, scale, seed, noise, root, tasks))
     return path, manifest
