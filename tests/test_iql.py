@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bati.nets import gaussian_log_prob
-from bati.rl.iql import IQL, IQLConfig, advantage_weights, expectile_loss
+from bati.rl.iql import IQL, IQLConfig, actor_loss, advantage_weights, critic_loss, expectile_loss
 
 
 def test_expectile_loss_matches_hand_computation():
@@ -41,7 +41,7 @@ def test_actor_loss_is_weighted_log_likelihood_of_dataset_actions():
     iql = IQL(3, 2, 2, IQLConfig(hidden_dims=(16,)))
     state = iql.init(jax.random.PRNGKey(0))
     batch, z = _toy_batch()
-    loss, _ = iql.actor_loss(state.actor.params, state, batch, z)
+    loss, _ = actor_loss(state.actor.params, state, batch, z, iql.config)
     obs_z = jnp.concatenate([batch["observations"], z], -1)
     sa = jnp.concatenate([obs_z, batch["actions"]], -1)
     q = iql.critic_net.apply(state.critic.target_params, sa).min(0)
@@ -57,7 +57,7 @@ def test_critic_target_uses_value_of_next_state():
     iql = IQL(3, 2, 2, IQLConfig(hidden_dims=(16,), discount=0.9))
     state = iql.init(jax.random.PRNGKey(1))
     batch, z = _toy_batch()
-    loss, _ = iql.critic_loss(state.critic.params, state, batch, z)
+    loss, _ = critic_loss(state.critic.params, state, batch, z, iql.config)
     next_v = iql.value_net.apply(state.value.params, jnp.concatenate([batch["next_observations"], z], -1))[:, 0]
     target = batch["rewards"] + 0.9 * next_v
     q = iql.critic_net.apply(state.critic.params, jnp.concatenate([batch["observations"], z, batch["actions"]], -1))

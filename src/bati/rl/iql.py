@@ -58,8 +58,71 @@ def advantage_weights(advantage: jax.Array, temperature: float, max_weight: floa
     return jnp.minimum(jnp.exp(advantage / temperature), max_weight)
 
 
+def log_prob(actor: TrainState, params, obs_z: jax.Array, actions: jax.Array, discrete: bool) -> jax.Array:
+    """log pi(a | s, z) of the actor `params`: categorical over one-hot actions, or a Gaussian around tanh(mean)."""
+    if discrete:
+        return jnp.sum(actions * jax.nn.log_softmax(actor.apply_fn(params, obs_z)), axis=-1)
+    mean, log_std = actor.apply_fn(params, obs_z)
+    return gaussian_log_prob(actions, jnp.tanh(mean), log_std)
+
+
+def _target_q(state: IQLState, obs_z: jax.Array, actions: jax.Array) -> jax.Array:
+    """min of the twin target critics at (s, z, a)."""
+    return state.critic.apply_fn(state.critic.target_params, jnp.concatenate([obs_z, actions], -1)).min(0)
+
+
+def value_loss(params, state: IQLState, batch: dict, z: jax.Array, config: IQLConfig):
+    """Expectile regression of V(s, z) towards the target Q(s, a, z) (IQL's Eq. 5); aux: mean V."""
+    obs_z = jnp.concatenate([batch["observations"], z], -1)
+    v = state.value.apply_fn(params, obs_z)[..., 0]
+    return expectile_loss(_target_q(state, obs_z, batch["actions"]) - v, config.expectile).mean(), v.mean()
+
+
+def actor_loss(params, state: IQLState, batch: dict, z: jax.Array, config: IQLConfig):
+    """Advantage-weighted log-likelihood of the dataset's actions (IQL's Eq. 7); aux: mean weight."""
+    obs_z = jnp.concatenate([batch["observations"], z], -1)
+    v = state.value.apply_fn(state.value.params, obs_z)[..., 0]
+    weights = advantage_weights(_target_q(state, obs_z, batch["actions"]) - v, config.temperature,
+                                config.max_exp_advantage)
+    # Weighted log-likelihood of the DATASET actions (not of freshly sampled ones).
+    log_p = log_prob(state.actor, params, obs_z, batch["actions"], config.discrete)
+    return -(jax.lax.stop_gradient(weights) * log_p).mean(), weights.mean()
+
+
+def critic_loss(params, state: IQLState, batch: dict, z: jax.Array, config: IQLConfig):
+    """TD regression of both Q(s, a, z) towards r + discount * V(s', z) (IQL's Eq. 6); aux: mean Q."""
+    next_v = state.value.apply_fn(state.value.params, jnp.concatenate([batch["next_observations"], z], -1))[..., 0]
+    # Our families' episodes end only by the time limit, so every transition bootstraps; a user's own
+    # data may mark terminal transitions (no value after them).
+    if "terminals" in batch:
+        next_v = (1.0 - batch["terminals"]) * next_v
+    target = batch["rewards"] + config.discount * next_v
+    q = state.critic.apply_fn(params, jnp.concatenate([batch["observations"], z, batch["actions"]], -1))
+    return ((q - jax.lax.stop_gradient(target)) ** 2).mean(), q.mean()
+
+
+def update(state: IQLState, batch: dict, z: jax.Array, config: IQLConfig) -> tuple[IQLState, dict]:
+    """One IQL step on a flat batch: value, then actor and critic, then the target."""
+    z = jax.lax.stop_gradient(z)
+    (v_loss, v_mean), grads = jax.value_and_grad(value_loss, has_aux=True)(state.value.params, state, batch, z, config)
+    state = state._replace(value=state.value.apply_gradients(grads=grads))
+
+    (a_loss, w_mean), grads = jax.value_and_grad(actor_loss, has_aux=True)(state.actor.params, state, batch, z, config)
+    actor = state.actor.apply_gradients(grads=grads)
+
+    (c_loss, q_mean), grads = jax.value_and_grad(critic_loss, has_aux=True)(state.critic.params, state, batch, z,
+                                                                             config)
+    critic = state.critic.apply_gradients(grads=grads)
+    critic = critic.replace(target_params=optax.incremental_update(critic.params, critic.target_params, config.tau))
+
+    metrics = {"value_loss": v_loss, "actor_loss": a_loss, "critic_loss": c_loss, "q": q_mean, "v": v_mean,
+               "adv_weight": w_mean}
+    return IQLState(actor, critic, state.value), metrics
+
+
 class IQL:
-    """Networks, losses and the jittable update. Batches are flat: (N, dim) arrays with z (N, d)."""
+    """Networks and state for one data shape; the losses and `update` above are pure functions of the state.
+    Batches are flat: (N, dim) arrays with z (N, d)."""
 
     def __init__(self, obs_dim: int, latent_dim: int, action_dim: int, config: IQLConfig = IQLConfig()):
         self.config = config
@@ -83,15 +146,9 @@ class IQL:
             value=TrainState.create(apply_fn=self.value_net.apply, params=value, tx=self.optimizer),
         )
 
-    # --- policy ---------------------------------------------------------------------------
-    def log_prob(self, actor, obs_z: jax.Array, actions: jax.Array) -> jax.Array:
-        if self.config.discrete:
-            return jnp.sum(actions * jax.nn.log_softmax(self.actor_net.apply(actor, obs_z)), axis=-1)
-        mean, log_std = self.actor_net.apply(actor, obs_z)
-        return gaussian_log_prob(actions, jnp.tanh(mean), log_std)
-
     def act(self, actor, obs: jax.Array, z: jax.Array, key: jax.Array | None = None) -> jax.Array:
-        """Greedy action (the Gaussian's mean / the categorical's mode, one-hot) or a sample with `key`."""
+        """Greedy action (the Gaussian's mean / the categorical's mode, one-hot) or a sample with `key`;
+        `actor`: the actor's params."""
         obs_z = jnp.concatenate([obs, z], axis=-1)
         if self.config.discrete:
             logits = self.actor_net.apply(actor, obs_z)
@@ -102,47 +159,6 @@ class IQL:
             return jnp.tanh(mean)
         return jnp.clip(jnp.tanh(mean) + jnp.exp(log_std) * jax.random.normal(key, mean.shape), -1.0, 1.0)
 
-    # --- losses ---------------------------------------------------------------------------
-    def value_loss(self, value, state: IQLState, batch, z):
-        obs_z = jnp.concatenate([batch["observations"], z], -1)
-        q = self.critic_net.apply(state.critic.target_params, jnp.concatenate([obs_z, batch["actions"]], -1)).min(0)
-        v = self.value_net.apply(value, obs_z)[..., 0]
-        return expectile_loss(q - v, self.config.expectile).mean(), v.mean()
-
-    def actor_loss(self, actor, state: IQLState, batch, z):
-        obs_z = jnp.concatenate([batch["observations"], z], -1)
-        q = self.critic_net.apply(state.critic.target_params, jnp.concatenate([obs_z, batch["actions"]], -1)).min(0)
-        v = self.value_net.apply(state.value.params, obs_z)[..., 0]
-        weights = advantage_weights(q - v, self.config.temperature, self.config.max_exp_advantage)
-        # Weighted log-likelihood of the DATASET actions (not of freshly sampled ones).
-        log_prob = self.log_prob(actor, obs_z, batch["actions"])
-        return -(jax.lax.stop_gradient(weights) * log_prob).mean(), weights.mean()
-
-    def critic_loss(self, critic, state: IQLState, batch, z):
-        next_v = self.value_net.apply(state.value.params, jnp.concatenate([batch["next_observations"], z], -1))[..., 0]
-        # Our families' episodes end only by the time limit, so every transition bootstraps; a user's own
-        # data may mark terminal transitions (no value after them).
-        if "terminals" in batch:
-            next_v = (1.0 - batch["terminals"]) * next_v
-        target = batch["rewards"] + self.config.discount * next_v
-        q = self.critic_net.apply(critic, jnp.concatenate([batch["observations"], z, batch["actions"]], -1))
-        return ((q - jax.lax.stop_gradient(target)) ** 2).mean(), q.mean()
-
-    # --- update ---------------------------------------------------------------------------
     def update(self, state: IQLState, batch: dict, z: jax.Array) -> tuple[IQLState, dict]:
-        """One IQL step on a flat batch: value, then actor and critic, then the target."""
-        z = jax.lax.stop_gradient(z)
-        (v_loss, v_mean), grads = jax.value_and_grad(self.value_loss, has_aux=True)(state.value.params, state, batch, z)
-        state = state._replace(value=state.value.apply_gradients(grads=grads))
-
-        (a_loss, w_mean), grads = jax.value_and_grad(self.actor_loss, has_aux=True)(state.actor.params, state, batch, z)
-        actor = state.actor.apply_gradients(grads=grads)
-
-        (c_loss, q_mean), grads = jax.value_and_grad(self.critic_loss, has_aux=True)(state.critic.params, state, batch, z)
-        critic = state.critic.apply_gradients(grads=grads)
-        critic = critic.replace(target_params=optax.incremental_update(critic.params, critic.target_params,
-                                                                       self.config.tau))
-
-        metrics = {"value_loss": v_loss, "actor_loss": a_loss, "critic_loss": c_loss, "q": q_mean, "v": v_mean,
-                   "adv_weight": w_mean}
-        return IQLState(actor, critic, state.value), metrics
+        """`update` with this IQL's config."""
+        return update(state, batch, z, self.config)
