@@ -235,13 +235,13 @@ def test_interpolated_context_has_n_r_p_test_transitions(synthetic_data):
     data = dataclasses.replace(data, p_test=data.p_test.replace(rewards=jnp.full_like(data.p_test.rewards, 1000.0)),
                                p_train=data.p_train.replace(rewards=jnp.full_like(data.p_train.rewards, -1000.0)))
     for mix in (0.0, 0.25, 0.5, 1.0):
-        evaluator = Evaluator(STUB_METHOD, STUB_IQL, data, context_length=20, context_mix=mix)
+        evaluator = Evaluator(STUB_METHOD, STUB_IQL, data, context_length=20, context_mix=mix, family=get_family(data.family))
         ctx = evaluator.contexts("mixed", jax.random.PRNGKey(0))
         rewards = np.asarray(ctx["rewards"])
         assert rewards.shape == (data.p_test.n_tasks, 20)
         assert np.all((rewards == 1000).sum(1) == round(20 * mix)) and np.all((rewards == -1000).sum(1) == 20 - round(20 * mix))
     with pytest.raises(ValueError, match="context_mix must be in"):
-        Evaluator(STUB_METHOD, STUB_IQL, data, context_length=20, context_mix=1.5)
+        Evaluator(STUB_METHOD, STUB_IQL, data, context_length=20, context_mix=1.5, family=get_family(data.family))
 
 
 def test_probe_refuses_a_missing_run(tmp_path):

@@ -70,7 +70,7 @@ SEEDS = [100, 200]
 
 
 def collect(data, method, policy, k, episodes=1, context_length=20, keys=KEYS, state=None):
-    evaluator = Evaluator(method, SimpleNamespace(act=policy), data, context_length)
+    evaluator = Evaluator(method, SimpleNamespace(act=policy), data, context_length, family=get_family(data.family))
     collector = SelfCollector(evaluator, k, episodes, episode_length=LENGTH)
     return evaluator, collector.run(states() if state is None else state, keys, SEEDS)
 
@@ -139,7 +139,7 @@ def test_same_key_same_numbers(data):
 
 
 def test_bad_settings_are_one_clear_error(data):
-    evaluator = Evaluator(ExactTask(), SimpleNamespace(act=to_goal), data, 20)
+    evaluator = Evaluator(ExactTask(), SimpleNamespace(act=to_goal), data, 20, family=get_family(data.family))
     for k, message in ((0, "reinfer_every must be an integer >= 1, got 0"), (True, "reinfer_every"),
                        (2.5, "reinfer_every")):
         with pytest.raises(OnlineError, match=message):

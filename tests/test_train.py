@@ -38,7 +38,8 @@ def test_every_method_trains_and_evaluates_on_every_family(method, family, synth
     state, metrics = trainer.run_chunk(state, jax.random.PRNGKey(1), data.train, length=5)
     assert int(state.step) == 5
     assert all(np.isfinite(float(v)) for v in metrics.values())
-    result = Evaluator(trainer.method, trainer.iql, data, config.context_length).evaluate(state, jax.random.PRNGKey(2), 0)
+    result = Evaluator(trainer.method, trainer.iql, data, config.context_length,
+                       family=get_family(data.family)).evaluate(state, jax.random.PRNGKey(2), 0)
     for source in ("p_test", "p_train"):
         assert result.returns[source].shape == (len(data.test_tasks),)
         assert np.all(np.isfinite(result.returns[source]))
@@ -240,7 +241,8 @@ def test_dpt_is_its_own_policy_so_iql_is_left_untouched(synthetic_data):
 def test_oracle_infers_the_true_task_whatever_the_context(synthetic_data):
     data = synthetic_data("PointGoal")
     trainer, _, state = _trained("oracle", data)
-    result = Evaluator(trainer.method, trainer.iql, data, 20).evaluate(state, jax.random.PRNGKey(2), 0)
+    evaluator = Evaluator(trainer.method, trainer.iql, data, 20, family=get_family(data.family))
+    result = evaluator.evaluate(state, jax.random.PRNGKey(2), 0)
     for source in ("p_test", "p_train"):
         np.testing.assert_allclose(result.latents[source], data.test_task_arrays, rtol=1e-6)
         # nearest training task to the true one: the smallest distance there is

@@ -15,14 +15,13 @@ transitions from p_train followed by N r from p_test, one source called "mixed".
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from bati.data import FamilyData, sample_contexts, sample_off_policy_contexts
-from bati.envs import get_family
+from bati.envs import TaskFamily
 from bati.envs.rollout import LockstepEnvs, rollout
 
 SOURCES = ("p_test", "p_train")
@@ -83,11 +82,11 @@ class RunsPolicy:
 
 
 class Evaluator:
-    def __init__(self, method, iql, data: FamilyData, context_length: int, context_mix: float | None = None,
-                 family=None):
-        """`family`: the TaskFamily the data came from (default: looked up by the data's family name)."""
+    def __init__(self, method, iql, data: FamilyData, context_length: int, context_mix: float | None = None, *,
+                 family: TaskFamily):
+        """`family`: the TaskFamily the data came from (resolved once by the caller)."""
         self.method, self.iql, self.data = method, iql, data
-        self.family = family if family is not None else get_family(data.family)
+        self.family = family
         self.context_length = context_length
         if context_mix is not None and not 0.0 <= context_mix <= 1.0:
             raise ValueError(f"context_mix must be in [0, 1] (the share of p_test transitions), got {context_mix!r}")
@@ -194,16 +193,12 @@ def calibrate(method, params, data: FamilyData, context_length: int, key: jax.Ar
     return method.calibrate(params, sample_off_policy_contexts(data.train, key, length), train_distances)
 
 
-def reference_returns(data: FamilyData, seed: int = 0, zoo_dir: str | Path | None = None, *, family=None,
-                      expert=None) -> dict[str, float]:
+def reference_returns(data: FamilyData, *, family: TaskFamily, expert, seed: int = 0) -> dict[str, float]:
     """Mean return on the test tasks of a uniform random policy (0 on a normalised scale) and of the
-    data-collecting experts (`expert`, default the one in `zoo_dir` or the package zoo), each acting for its
-    own task (1; the paper's "Oracle (Pre-IQL)"). `family`: the data's TaskFamily (default: by name)."""
-    from bati.experts import load
+    data-collecting `expert`, acting for each task (1; the paper's "Oracle (Pre-IQL)"). `family`: the data's
+    TaskFamily."""
     from bati.experts.card import expert_episodes
 
-    family = family if family is not None else get_family(data.family)
-    expert = expert if expert is not None else load(data.family, zoo_dir)
     exact_random = family.exact_returns(None, data.test_tasks, data.noise)
     if exact_random is not None:  # computed expectations (KuhnPoker: per hand), as `Evaluator` reports them
         arrays = np.stack([family.task_to_array(t) for t in data.test_tasks])
