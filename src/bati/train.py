@@ -183,12 +183,12 @@ class RunInputs:
         needs_expert = collect or METHODS[config.method].needs_expert_actions
         expert = load_expert(config.family, config.zoo_dir) if needs_expert else None
         if collect:
-            data = ensure_family_data(config.family, config.data_scale, config.data_seed, config.noise,
+            data = ensure_family_data(family, config.data_scale, config.data_seed, config.noise,
                                       config.data_root, n_episodes=config.episodes_per_task,
                                       n_context_episodes=config.context_episodes, progress=show_progress,
                                       tasks=config.task_split(), zoo_dir=config.zoo_dir)
         else:
-            data = load_family_data(config.family, config.data_scale, config.data_seed, config.noise,
+            data = load_family_data(family, config.data_scale, config.data_seed, config.noise,
                                     config.data_root, tasks=config.task_split())
         return cls(config, family, data, expert)
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from bati.data import store
 from bati.errors import BatiWarning
-from bati.envs import EPISODE_LENGTH, TaskSplit, get_family
+from bati.envs import EPISODE_LENGTH, TaskFamily, TaskSplit, as_family
 
 TRANSITION_FIELDS = ("observations", "actions", "rewards", "next_observations")
 FIELDS = TRANSITION_FIELDS + ("collector",)
@@ -177,7 +177,7 @@ def sample_off_policy_contexts(data: TaskData, key: jax.Array, length: int) -> d
 
 # --- loading -----------------------------------------------------------------------------------
 def load_family_data(
-    family: str,
+    family: str | TaskFamily,
     scale: str = "quick",
     seed: int = 0,
     noise: float | None = None,
@@ -191,7 +191,8 @@ def load_family_data(
     Raises DatasetNotFoundError (with the collect command) if it is missing, DatasetError if a
     file is damaged or its shapes do not match the family's env.
     """
-    fam = get_family(family)
+    fam = as_family(family)  # the caller's resolved family, or one looked up by name here
+    family = fam.name
     noise = fam.validate_noise(noise)
     tasks = (tasks or TaskSplit()).checked(fam)
     path = store.collection_dir(root, fam, scale, seed, noise, tasks)
@@ -241,7 +242,7 @@ def load_family_data(
 
 
 def ensure_family_data(
-    family: str,
+    family: str | TaskFamily,
     scale: str = "quick",
     seed: int = 0,
     noise: float | None = None,

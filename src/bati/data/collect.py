@@ -25,7 +25,7 @@ import numpy as np
 from bati.checks import check_integer
 from bati.data import store
 from bati.data.plan import OTHER_FRACTION, PLAN_STREAM, DatasetPlan, Plan, make_plan
-from bati.envs import FAMILY_NAMES, TaskFamily, TaskSplit, get_family
+from bati.envs import FAMILY_NAMES, TaskFamily, TaskSplit, as_family, get_family
 from bati.envs.rollout import LockstepEnvs
 from bati.io import atomic_write_json, check_directory, git_commit, hold_lock
 
@@ -43,7 +43,7 @@ def scale_sizes(family: str | TaskFamily, scale: str) -> tuple[int, int]:
     FamilyRecord field's name is the family's own)."""
     if scale not in SCALES:
         raise ValueError(f"unknown scale {scale!r}; choose one of: {', '.join(SCALES)}")
-    record = (get_family(family) if isinstance(family, str) else family).record
+    record = as_family(family).record
     sizes = {k: getattr(record, v) if isinstance(v, str) else v for k, v in SCALES[scale].items()}
     return int(sizes["n_episodes"]), int(sizes["n_context_episodes"])
 
@@ -75,7 +75,7 @@ class CollectResult:
 
 
 def collect(
-    family: str,
+    family: str | TaskFamily,
     scale: str = "quick",
     seed: int = 0,
     noise: float | None = None,
@@ -99,7 +99,8 @@ def collect(
     start = time.perf_counter()
     workers = check_workers(workers)
     check_integer("seed", seed, low=0)  # a negative seed: one line now, not numpy's after the plan
-    fam = get_family(family)
+    fam = as_family(family)  # the caller's resolved family, or one looked up by name here
+    family = fam.name
     check_supported(fam)
     noise = fam.validate_noise(noise)
     tasks = (tasks or TaskSplit()).checked(fam)

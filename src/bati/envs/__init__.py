@@ -116,6 +116,11 @@ def get_family(name: str) -> TaskFamily:
     return getattr(loaded, family_class)()
 
 
+def as_family(family: str | TaskFamily) -> TaskFamily:
+    """`family` itself when it is a TaskFamily already (resolved once by an entry point), else `get_family`."""
+    return family if isinstance(family, TaskFamily) else get_family(family)
+
+
 def families_with_extras(names: tuple[str, ...] | None = None) -> tuple[list[TaskFamily], list[tuple[str, str]]]:
     """The families `names` (default: all) that can be built here, and (name, install hint) for those whose
     optional extra is missing (`bati envs`)."""
@@ -180,5 +185,5 @@ _register()
 _quiet_mujoco_deprecation()
 
 __all__ = ["EPISODE_LENGTH", "FAMILY_NAMES", "FamilyRecord", "FamilyUnavailable", "Task", "TaskEnvMixin", "TaskError",
-           "TaskFamily", "TaskSplit", "families_with_extras", "family_available", "family_names", "get_family",
+           "TaskFamily", "TaskSplit", "as_family", "families_with_extras", "family_available", "family_names", "get_family",
            "make_env", "random_episode", "register_family", "scalar_task"]
