@@ -418,19 +418,9 @@ class Report:
     """Where report.md, the CSVs and PNGs go (default: RESULTS_DIR/report)."""
 
     def run(self) -> None:
-        from bati.report import ReportWarning, build_report
+        from bati.report import build_report
 
-        caught: list[warnings.WarningMessage] = []
-        try:
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always", ReportWarning)
-                report = build_report(self.results_dir, self.out_dir)
-        finally:  # skipped files are named even when the report then fails
-            for w in caught:
-                if issubclass(w.category, ReportWarning):
-                    error_console.print(f"[yellow]warning:[/] {escape(str(w.message))}")
-                else:
-                    warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+        report = build_report(self.results_dir, self.out_dir)  # skipped files: warnings, printed as they happen
         console.print(Markdown(report["markdown"]))
         console.print(f"{report['runs']} run(s), {len(report['tables'])} table(s); "
                       f"files in {report['out_dir']}/: " + ", ".join(p.name for p in report["files"]),

@@ -8,6 +8,7 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bati.errors import BatiWarning
 from bati.io import read_jsonl
 
 # Config keys that do not make two runs' settings different (they are what a table compares or where
@@ -39,8 +40,9 @@ def _comparable(config: dict) -> dict:
     return config
 
 
-class ReportWarning(UserWarning):
-    """A result file that was skipped or a group that is incomplete."""
+class ReportWarning(BatiWarning):
+    """A result file that was skipped or a group that is incomplete (one of bati's warnings: the CLI prints
+    it as one `warning:` line as it happens)."""
 
 
 def _float(value) -> float:
