@@ -99,6 +99,14 @@ def test_run_with_an_unknown_method_fails_before_any_work(capsys, tmp_path):
     assert not (tmp_path / "data").exists()  # no data collected
 
 
+def test_run_takes_steps_and_zoo_from_their_own_options_not_settings(capsys, tmp_path):
+    code = main(["run", "--settings", "steps=5", "--data-root", str(tmp_path / "data"), "--out-dir", str(tmp_path / "r")])
+    out, err = capsys.readouterr()
+    assert code == 2
+    assert_one_line_error(out, err, "--steps and --zoo-dir")
+    assert not (tmp_path / "r").exists() and not (tmp_path / "data").exists()
+
+
 def test_run_methods_all_means_every_method():
     from bati.methods import METHODS, method_names
 
