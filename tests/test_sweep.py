@@ -168,20 +168,20 @@ def test_the_reference_returns_are_computed_once_per_collection(tmp_path, local,
 
 def test_bati_run_is_a_sweep_plus_the_report_and_a_rerun_trains_nothing(tmp_path, local, monkeypatch, capsys):
     out = tmp_path / "main"
-    args = ["run", "--methods", "bati", "no-context", "--seeds", "0", "1", "--out-dir", str(out),
+    args = ["run", "--methods", "bati", "--seeds", "0", "1", "--out-dir", str(out),
             "--settings", *(s for s in TINY if not s.startswith("steps")), "--steps", "10"]
     assert main(args) == 0
     printed = capsys.readouterr().out
     assert "Reading (normalised" in printed and "results in" in printed
     results = json.loads((out / "results.json").read_text())
-    assert [row["method"] for row in results["rows"]] == ["bati", "no-context"]
+    assert [row["method"] for row in results["rows"]] == ["bati"]
     assert all(row["n_seeds"] == 2 for row in results["rows"]) and results["reading"].startswith("Reading")
     assert results["reading"] in (out / "results.md").read_text()
     assert (out / "report" / "report.md").is_file() and (out / "report" / "runs.csv").is_file()
-    assert _statuses(out) == ["done"] * 4
+    assert _statuses(out) == ["done"] * 2
 
     monkeypatch.setattr(sweep_module, "run_job", lambda *a, **k: pytest.fail("a finished run was trained again"))
-    assert main(args) == 0 and _statuses(out) == ["skipped"] * 4
+    assert main(args) == 0 and _statuses(out) == ["skipped"] * 2
 
 
 def test_cli_sweep_ends_with_the_report(tmp_path, local, capsys):
