@@ -180,8 +180,14 @@ def test_bati_run_is_a_sweep_plus_the_report_and_a_rerun_trains_nothing(tmp_path
     assert (out / "report" / "report.md").is_file() and (out / "report" / "runs.csv").is_file()
     assert _statuses(out) == ["done"] * 2
 
+    real = sweep_module.run_job
     monkeypatch.setattr(sweep_module, "run_job", lambda *a, **k: pytest.fail("a finished run was trained again"))
     assert main(args) == 0 and _statuses(out) == ["skipped"] * 2
+
+    other = [a if a != "10" else "15" for a in args]  # another setting into the same directory: its own table
+    monkeypatch.setattr(sweep_module, "run_job", real)
+    assert main(other) == 0
+    assert json.loads((out / "results.json").read_text())["table"].find("15 steps") >= 0
 
 
 def test_cli_sweep_ends_with_the_report(tmp_path, local, capsys):

@@ -83,13 +83,14 @@ def run_main_job(job: MainJob, show_progress: bool = True) -> dict:
     out = job.directory()
     check_directory(out, "the experiment directory")
     grid = job.grid()
-    expand(grid, out, job.data_root)  # every setting of every run, before the data is collected
+    cells = expand(grid, out, job.data_root)  # every setting of every run, before the data is collected
+    setting_dir = cells[0].config.out_dir.parent  # the job's runs, apart from other settings swept into `out`
     result = sweep(grid, out, data_root=job.data_root, workers=job.workers, show_progress=show_progress)
     if result.errors:
         raise MainJobFailed(f"{len(result.errors)} run(s) failed: " + "; ".join(result.errors.values()) +
                             f" (recorded in {out}/sweep.json); rerun the same command to retry them")
-    report = build_report(out, out / "report")
-    table = report["tables"][0]  # one family, scale and eps: one table
+    report = build_report(setting_dir, out / "report")
+    table = report["tables"][0]  # one family, scale, eps and settings: one table
     line = reading(table["rows"], table["settings"].get("steps"), len(job.seeds))
     markdown = table["markdown"] + f"\n{line}\n"
     wall_time = round(time.perf_counter() - start, 1)
