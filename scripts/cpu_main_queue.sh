@@ -11,7 +11,7 @@ set -u
 data_root=${1:-data}
 out_dir=${2:-$(pwd)/results/cpu/experiments}
 families=${FAMILIES:-"AntDir HalfCheetahVel HalfCheetahDir HopperParam WalkerParam"}
-methods=${METHODS:-"oracle bati bati-r recon focal unicorn csro no-context er-trl bati-auto dpt"}  # cheap baselines before ER-TRL (GAN: the slowest step)
+methods=${METHODS:-"oracle bati bati-r recon focal unicorn no-context er-trl csro bati-auto dpt"}  # CSRO re-queued after its CLUB fix
 for family in $families; do
   python -m bati.cli data collect --family "$family" --scale paper --workers 2 --root "$data_root" || exit 1
   for method in $methods; do

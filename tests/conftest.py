@@ -2,6 +2,30 @@
 
 from __future__ import annotations
 
+import atexit
+import os
+import shutil
+import tempfile
+
+
+def _share_compiled_programs() -> None:
+    """Most of the suite's time is XLA compiling the same small programs again (each test builds its own
+    trainer), so the tests of a process and the processes they start share JAX's persistent compilation cache,
+    in a temporary directory removed at exit. One cache per xdist worker: JAX writes an entry without a lock,
+    and a reader in a concurrent process could catch it half written (JAX then warns and compiles anew).
+    A JAX_COMPILATION_CACHE_DIR of your own is left alone."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+    owner = os.environ.get("BATI_TESTS_XLA_CACHE_OF")
+    if owner == worker or (owner is None and "JAX_COMPILATION_CACHE_DIR" in os.environ):
+        return
+    cache = tempfile.mkdtemp(prefix=f"bati-tests-xla-{worker}-")
+    atexit.register(shutil.rmtree, cache, ignore_errors=True)
+    os.environ.update(BATI_TESTS_XLA_CACHE_OF=worker, JAX_COMPILATION_CACHE_DIR=cache,
+                      JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="-1")
+
+
+_share_compiled_programs()  # before JAX is imported: it reads these settings then
+
 import jax.numpy as jnp
 import numpy as np
 import pytest

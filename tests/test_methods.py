@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
 
+from bati.config import TrainConfig
 from bati.envs import get_family
 from bati.methods import MethodSpec, make_method
-from bati.methods.csro import CSROConfig
 from bati.methods.bati import BATI, BATIConfig
+from bati.methods.csro import CSROConfig
 from bati.methods.dynamics import reconstruction_nll, transition_targets
 
 SPEC = MethodSpec(obs_dim=2, action_dim=1, task_dim=1, n_train_tasks=4, latent_dim=3,
@@ -185,6 +188,57 @@ def test_club_bound_on_a_gaussian_toy_with_known_mutual_information():
     assert club >= -0.5 * np.log(1 - rho**2)  # an upper bound on I(z; x)
 
 
+def test_club_within_tasks_is_the_mean_over_every_pair_of_a_task():
+    from bati.methods.csro import club_within_tasks
+
+    rng = np.random.default_rng(0)
+    z, mean, log_std = (rng.normal(size=(3, 5, 2)) for _ in range(3))
+    inverse_variance = np.exp(-2 * log_std)
+    # by hand: for task t, transition i and dimension k, the mean over j of (z_tjk - mean_tik)^2 / var_tik,
+    # minus (z_tik - mean_tik)^2 / var_tik
+    negative = ((z[:, None, :, :] - mean[:, :, None, :]) ** 2 * inverse_variance[:, :, None, :]).mean(axis=2)
+    positive = (z - mean) ** 2 * inverse_variance
+    np.testing.assert_allclose(club_within_tasks(jnp.asarray(z), jnp.asarray(mean), jnp.asarray(log_std)),
+                               (negative - positive).mean(), rtol=1e-5)
+
+
+def test_only_any_task_negatives_penalise_latents_that_carry_the_task():
+    from bati.methods.csro import club_estimate, club_within_tasks
+    from bati.nets import gaussian_log_prob
+
+    # Two tasks whose behaviour differs: x = the task's sign plus noise. The latent is the task alone
+    # (constant over a task's transitions), and q(z | x) predicts it from x's sign.
+    rng = np.random.default_rng(1)
+    sign = np.array([-1.0, 1.0])[:, None, None]
+    x = jnp.asarray(sign + 0.1 * rng.normal(size=(2, 50, 1)))
+    z = jnp.asarray(np.broadcast_to(sign, (2, 50, 1)))
+    mean, log_std = jnp.sign(x), jnp.full_like(x, np.log(0.5))
+    assert float(club_within_tasks(z, mean, log_std)) == pytest.approx(0.0, abs=1e-6)  # nothing to penalise
+    log_q = lambda z_, x_: gaussian_log_prob(z_, jnp.sign(x_), jnp.full_like(x_, np.log(0.5)))
+    flat_z, flat_x = z.reshape(-1, 1), x.reshape(-1, 1)
+    other = flat_x[jnp.roll(jnp.arange(100), 50)]  # every negative from the other task
+    assert float(club_estimate(log_q, flat_z, flat_x, other)) == pytest.approx(8.0, rel=1e-5)  # (2^2 / 0.25) / 2
+
+
+def test_csro_runs_recorded_before_the_negatives_setting_are_read_as_any_task():
+    from bati.config import upgrade_record
+    from bati.report.runs import _comparable
+
+    config = TrainConfig(family="HopperParam", method="csro").resolved()
+    assert config.csro.club_negatives == "same-task"
+    new = config.record()
+    old = json.loads(json.dumps(new))
+    old["csro"].pop("club_negatives")
+    assert upgrade_record(old)["csro"] == {**new["csro"], "club_negatives": "any-task"}
+    assert TrainConfig.from_record(old).csro.club_negatives == "any-task"
+    before_sections = {k: v for k, v in old.items() if k != "csro"}
+    assert upgrade_record(before_sections)["csro"]["club_negatives"] == "any-task"
+    # the report keeps them apart: any-task CSRO is a setting of its own, today's default is not
+    assert "csro" in _comparable(old) and "csro" not in _comparable(new)
+    with pytest.raises(ValueError, match="csro.club_negatives must be 'same-task' or 'any-task', got 'all'"):
+        CSROConfig(club_negatives="all").check()
+
+
 def _baseline_batch(seed=0):
     batch = toy_transitions(np.arange(4), n=16, seed=seed)
     batch["task_ids"] = jnp.arange(4)
@@ -195,8 +249,9 @@ def _baseline_batch(seed=0):
     return batch
 
 
-def test_csro_fits_q_on_detached_latents_and_the_encoder_on_a_frozen_q():
-    method = make_method("csro", SPEC)
+@pytest.mark.parametrize("negatives", ["same-task", "any-task"])
+def test_csro_fits_q_on_detached_latents_and_the_encoder_on_a_frozen_q(negatives):
+    method = make_method("csro", SPEC, CSROConfig(club_negatives=negatives))
     params = method.init(jax.random.PRNGKey(0))
     batch = _baseline_batch()
 

@@ -400,13 +400,17 @@ LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": Non
 def upgrade_record(record: dict) -> dict:
     """A config.json written by an older version, in today's field names. Before the per-method
     sections existed: IQL's temperature was called `beta`, and its hidden sizes were also recorded
-    as `rl_hidden_dims` (the same value, copied into iql.hidden_dims)."""
+    as `rl_hidden_dims` (the same value, copied into iql.hidden_dims). CSRO runs recorded before
+    `csro.club_negatives` existed drew CLUB's negatives from any task (its default is now "same-task")."""
     record = dict(record)
     iql = record.get("iql")
     if isinstance(iql, dict) and "beta" in iql:
         iql = {("temperature" if k == "beta" else k): v for k, v in iql.items()}
         record["iql"] = iql
     record.pop("rl_hidden_dims", None)
+    if record.get("method") == "csro" and "club_negatives" not in (record.get("csro") or {}):
+        section = record.get("csro") or default_method_record(record.get("family"), "csro")
+        record["csro"] = {**section, "club_negatives": "any-task"}
     return record
 
 
