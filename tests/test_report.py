@@ -362,3 +362,22 @@ def test_a_full_disk_names_the_report_directory_and_keeps_the_previous_report(re
     assert err == [f"error: {out}: no space left on device"]
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # the previous report, whole
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no staging left
+
+
+def test_a_method_setting_off_its_default_is_a_table_of_its_own_named_by_it(tmp_path):
+    from bati.config import default_method_record
+
+    root = tmp_path / "runs"
+    today = default_method_record("PointGoal", "csro")  # club_negatives "same-task"
+    for seed in range(3):
+        write_run(root, "PointGoal", "bati", seed, -300.0, -310.0, 0.5, 0.6)
+        for subdir, section in (("today", today), ("old", {**today, "club_negatives": "any-task"})):
+            path = write_run(root, "PointGoal", "csro", seed, -320.0, -330.0, 0.5, 0.6, subdir=subdir) / "eval.json"
+            summary = json.loads(path.read_text())
+            summary["config"]["csro"] = section
+            path.write_text(json.dumps(summary))
+    report = build_report(root, tmp_path / "report")
+    titles = {tuple(sorted(r["method"] for r in t["rows"])): t["title"] for t in report["tables"]}
+    assert set(titles) == {("bati", "csro"), ("csro",)}  # today's CSRO beside BATI, the old one apart
+    assert "club_negatives = any-task" in titles[("csro",)] and "club_weight" not in titles[("csro",)]
+    assert "csro" not in titles[("bati", "csro")]

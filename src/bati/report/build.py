@@ -162,11 +162,15 @@ def group_runs(runs: list[RunResult]) -> list[Group]:
 def differing_keys(groups: list[Group]) -> list[str]:
     """Setting keys with different values in the groups that record them (family and title keys excluded).
 
-    A key absent from some groups (older result files record no config) does not count as a difference.
+    A key absent from some groups (older result files record no config) does not count as a difference,
+    except a method's hyperparameter: a run records it only where it differs from the method's default.
     """
+    from bati.config import method_sections
+
     keys = sorted({k for g in groups for k in g.settings})
+    methods = tuple(f"{name}." for name in method_sections())  # present only where not the method's default
     return [k for k in keys if k not in TITLE_KEYS
-            and len({repr(g.settings[k]) for g in groups if k in g.settings}) > 1]
+            and (k.startswith(methods) or len({repr(g.settings[k]) for g in groups if k in g.settings}) > 1)]
 
 
 def _datasets(group: Group) -> list[str]:

@@ -24,7 +24,8 @@ HELD_OUT_KEYS = ("held_out_inference_accuracy", "held_out_representation_loss", 
 def _comparable(config: dict) -> dict:
     """A run's recorded config in today's names (older records upgraded), without its method's
     hyperparameters where they are the method's defaults on its family: runs of different methods at
-    the same setting share a table, and a non-default one (e.g. csro.club_weight) is a setting."""
+    the same setting share a table, and a non-default one (e.g. csro.club_weight) is a setting: the
+    section keeps just the fields that differ from the defaults."""
     from bati.config import LATER_FIELDS, default_method_record, method_sections, upgrade_record
 
     # settings added later, at the value older runs had: absent from older records, so left out of all
@@ -35,7 +36,10 @@ def _comparable(config: dict) -> dict:
                 default = default_method_record(config.get("family"), config.get("method"))
             except (ImportError, ValueError):  # a family not available here (its extra is missing)
                 continue
-            if config[name] == default:
+            changed = {k: v for k, v in config[name].items() if default is None or default.get(k) != v}
+            if changed:
+                config[name] = changed  # only what differs from the defaults: the table's title names it
+            else:
                 config.pop(name)
     return config
 
