@@ -105,15 +105,17 @@ class CSRO(FOCAL):
         # which FOCAL's translation-invariant loss does nothing to stop, and IQL's critic diverged.
         latents = per_transition - per_transition.mean(axis=(0, 1))
         state_actions = jnp.concatenate([context["observations"], context["actions"]], -1)  # (T, C, s + a)
-        # The encoder minimises CLUB under a fixed q ...
-        frozen_q = jax.lax.stop_gradient(params["club"])
         if self.config.club_negatives == "same-task":
-            club = club_within_tasks(latents, *self.club_net.apply(frozen_q, state_actions))
+            mean, log_std = self.club_net.apply(params["club"], state_actions)  # one pass of q serves both terms
+            # The encoder minimises CLUB under a fixed q ...
+            club = club_within_tasks(latents, jax.lax.stop_gradient(mean), jax.lax.stop_gradient(log_std))
+            # ... while q fits the detached latents by maximum likelihood.
+            q_nll = -gaussian_log_prob(jax.lax.stop_gradient(latents), mean, log_std).mean()
         else:
+            frozen_q = jax.lax.stop_gradient(params["club"])
             flat_latents, flat_x = latents.reshape(-1, latents.shape[-1]), state_actions.reshape(-1, state_actions.shape[-1])
             negatives = jax.random.permutation(key, flat_x.shape[0])
             club = club_estimate(partial(self.log_q, frozen_q), flat_latents, flat_x, flat_x[negatives])
-        # ... while q fits the detached latents by maximum likelihood.
-        q_nll = -self.log_q(params["club"], jax.lax.stop_gradient(latents), state_actions).mean()
+            q_nll = -self.log_q(params["club"], jax.lax.stop_gradient(latents), state_actions).mean()
         loss = metric + self.weight * club + q_nll
         return loss, (z, {"metric_loss": metric, "club": club, "club_q_nll": q_nll})
