@@ -52,20 +52,26 @@ def test_registering_needs_a_record_and_a_new_name(line_goal):
     register_family(example_family.LineGoalFamily, example_family.LineGoalEnv)  # again: a no-op
 
 
-@pytest.mark.slow
-def test_every_method_runs_collect_train_evaluate_on_a_family_defined_outside_src(line_goal, tmp_path):
-    result = collect("LineGoal", "quick", seed=0, root=tmp_path / "data", n_episodes=4, n_context_episodes=2,
-                     progress=False)
+@pytest.fixture(scope="module")
+def line_goal_data(line_goal, tmp_path_factory):
+    root = tmp_path_factory.mktemp("line-goal") / "data"
+    result = collect("LineGoal", "quick", seed=0, root=root, n_episodes=4, n_context_episodes=2, progress=False)
     manifest = result.manifest
     assert manifest["episode_length"] == 50 and manifest["transitions"] == (20 * 4 + 2 * 20 * 2) * 50
-    for method in sorted(METHODS):
-        config = TrainConfig(family="LineGoal", method=method, steps=10, eval_every=10, log_every=5, task_batch=4,
-                             batch_size=8, iql=IQLConfig(hidden_dims=(16, 16)), data_root=tmp_path / "data",
-                             episodes_per_task=4, context_episodes=2, out_dir=tmp_path / "runs" / method)
-        summary = train(config, show_progress=False)
-        assert np.isfinite(summary["p_test_return"]) and np.isfinite(summary["p_train_return"])
-        saved = json.loads((tmp_path / "runs" / method / "config.json").read_text())
-        assert saved["family"] == "LineGoal" and saved["context_length"] == 50  # the record's context length
+    return root
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", sorted(METHODS))
+def test_every_method_runs_collect_train_evaluate_on_a_family_defined_outside_src(method, line_goal, line_goal_data,
+                                                                                  tmp_path):
+    config = TrainConfig(family="LineGoal", method=method, steps=10, eval_every=10, log_every=5, task_batch=4,
+                         batch_size=8, iql=IQLConfig(hidden_dims=(16, 16)), data_root=line_goal_data,
+                         episodes_per_task=4, context_episodes=2, out_dir=tmp_path / "runs" / method)
+    summary = train(config, show_progress=False)
+    assert np.isfinite(summary["p_test_return"]) and np.isfinite(summary["p_train_return"])
+    saved = json.loads((tmp_path / "runs" / method / "config.json").read_text())
+    assert saved["family"] == "LineGoal" and saved["context_length"] == 50  # the record's context length
     # Table 3-style settings come from the record: the latent of BATI's table is the record's latent_dim
     assert config.resolved().family == "LineGoal" and line_goal.record.latent_dim == 2
 
