@@ -118,6 +118,28 @@ def test_plan_is_reproducible_and_seed_dependent():
     assert len(np.unique(seeds)) == len(seeds) == 20 * 10 + 2 * 20 * 3
 
 
+
+def test_the_recorded_commit_says_when_the_code_differs_from_it(tmp_path):
+    import subprocess
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    assert git_commit(tmp_path) == "unknown"  # not a checkout
+    git("init", "-q")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    git("add", "code.py")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "first")
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=tmp_path, capture_output=True,
+                          text=True).stdout.strip()
+    assert git_commit(tmp_path) == head
+    (tmp_path / "code.py").write_text("x = 2\n")  # an edit not committed: the commit alone is not the code
+    assert git_commit(tmp_path) == f"{head}-dirty"
+    (tmp_path / "code.py").write_text("x = 1\n")
+    (tmp_path / "new.py").write_text("y = 1\n")  # a new file counts too
+    assert git_commit(tmp_path) == f"{head}-dirty"
+
+
 # --- the collected data -----------------------------------------------------------------------
 def test_collection_layout_and_manifest(small):
     result, data = small

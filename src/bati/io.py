@@ -98,12 +98,19 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"cannot serialise {type(value).__name__} to JSON")
 
 
-def git_commit() -> str:
-    """Short commit of the running code ("unknown" outside a git checkout)."""
+def git_commit(directory: Path | None = None) -> str:
+    """Short commit of the running code (the package's directory by default), with "-dirty" appended where
+    the files under `directory` differ from it (edits not committed: the commit alone would not give the
+    run back); "unknown" outside a git checkout."""
+    directory = Path(directory) if directory is not None else Path(__file__).parent
     try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                             cwd=Path(__file__).parent, timeout=5)
-        return out.stdout.strip() or "unknown"
+        def git(*args):
+            return subprocess.run(["git", *args], capture_output=True, text=True, cwd=directory, timeout=5).stdout.strip()
+
+        head = git("rev-parse", "--short", "HEAD")
+        if not head:
+            return "unknown"
+        return head + ("-dirty" if git("status", "--porcelain", "--", ".") else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
 
