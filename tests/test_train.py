@@ -221,6 +221,21 @@ def test_training_step_vmaps_over_seeds(synthetic_data):
     assert not np.allclose(states.method.params["table"][0], states.method.params["table"][1])
 
 
+def test_each_step_logs_how_far_apart_the_tasks_latents_are(synthetic_data):
+    data = synthetic_data("PointGoal")
+    for method in ("oracle", "no-context"):
+        trainer = Trainer(TrainConfig(family="PointGoal", method=method, steps=1, **TINY).resolved(), data,
+                          family_of("PointGoal"))
+        key = jax.random.PRNGKey(3)
+        _, metrics = trainer.step(trainer.init(jax.random.PRNGKey(0)), key, data.train)
+        if method == "no-context":  # no latent, nothing to spread
+            assert "latent_spread" not in metrics
+            continue
+        k_batch, k_context, _ = jax.random.split(key, 3)
+        tasks = np.asarray(trainer.make_batch(data.train, k_batch, k_context)["task_arrays"])  # the oracle's z
+        np.testing.assert_allclose(metrics["latent_spread"], tasks.std(axis=0).mean(), rtol=1e-5)
+
+
 def _trained(method, data, steps=5):
     config = TrainConfig(family=data.family, method=method, steps=steps, **TINY).resolved()
     expert = load_expert(data.family) if METHODS[method].needs_expert_actions else None

@@ -98,6 +98,8 @@ class Trainer:
             iql, iql_metrics = self.iql.update(state.iql, flat, z_flat)
 
         metrics = {"representation_loss": rep_loss, **rep_metrics, **iql_metrics}
+        if z.shape[-1]:  # how far apart the batch tasks' latents are: ~0 when task inference collapsed
+            metrics["latent_spread"] = jnp.std(jax.lax.stop_gradient(z), axis=0).mean()
         return TrainState(method, iql, state.step + 1), metrics
 
     def _run_chunk(self, state: TrainState, base_key: jax.Array, data, length: int):
