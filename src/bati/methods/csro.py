@@ -14,7 +14,7 @@ Where the negative pairs come from decides what CLUB penalises (`club_negatives`
 - "any-task" (bati before 2026-11-25): one random other transition of the whole batch. This is
   CLUB of the marginal I(z; x), and x carries the task (each task's data comes from its own expert),
   so it penalises the task information itself: on AntDir and HopperParam every run's latents
-  collapsed to one point within 2k-6k steps (FOCAL's push has no gradient at coincidence), the
+  collapsed to one point within 0.7k-6k steps (FOCAL's push has no gradient at coincidence), the
   conflict the paper's Sec. 3.2 describes taken to its end. Kept to reproduce those runs.
 """
 
