@@ -106,6 +106,27 @@ def test_resume_after_interruption_gives_the_same_parameters(tmp_path, point_dat
     assert steps == [5, 10, 15, 20]
 
 
+def test_a_long_stretch_between_checkpoints_gets_a_timed_checkpoint_that_resumes_exactly(tmp_path, point_data,
+                                                                                         monkeypatch):
+    train(_config(tmp_path, "straight"), show_progress=False)
+    monkeypatch.setattr(train_module, "CHECKPOINT_SECONDS", 0.0)  # every log boundary is "10 minutes later"
+    with monkeypatch.context() as patch:
+        _killed_at_second_checkpoint(patch)
+        with pytest.raises(KeyboardInterrupt):
+            train(_config(tmp_path, "resumed"), show_progress=False)  # killed writing step 10's checkpoint
+    template = Trainer(_config(tmp_path, "x").resolved(), point_data, family_of("PointGoal")).init(jax.random.PRNGKey(0))
+    assert int(_params(tmp_path / "resumed" / "checkpoint.msgpack", template).step) == 5  # a timed one (eval_every 10)
+    train(_config(tmp_path, "resumed"), show_progress=False)
+    straight = _params(tmp_path / "straight" / "checkpoint.msgpack", template)
+    resumed = _params(tmp_path / "resumed" / "checkpoint.msgpack", template)
+    jax.tree_util.tree_map(np.testing.assert_array_equal, straight, resumed)
+    records = [json.loads(line) for line in (tmp_path / "resumed" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records] == [5, 10, 15, 20]
+    straight_records = [json.loads(line) for line in (tmp_path / "straight" / "metrics.jsonl").read_text().splitlines()]
+    for a, b in zip(records, straight_records):
+        assert {k: v for k, v in a.items() if k != "wall_time"} == {k: v for k, v in b.items() if k != "wall_time"}
+
+
 def test_same_config_and_seed_reproduce_the_same_numbers(tmp_path, point_data):
     a = train(_config(tmp_path, "a"), show_progress=False)
     b = train(_config(tmp_path, "b"), show_progress=False)

@@ -277,12 +277,19 @@ class _SeedRun:
         return cls(config, state, base_key, sinks)
 
 
+CHECKPOINT_SECONDS = 600.0
+"""Besides every checkpoint_every steps, a run checkpoints at the first log boundary this long (wall time)
+after its last checkpoint, so a kill loses at most about this much work. A run resumed from any log
+boundary gives the same numbers (step t's key is fold_in(key, t)), so this changes no result."""
+
+
 def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun], until: int, start: float,
              progress, bar) -> None:
     """Train `runs` (all at the same step) together up to step `until`: chunks of log_every steps,
     vmapped over the runs when there are several, with their logs, evaluations and checkpoints."""
     c = runs[0].config
     step = runs[0].step
+    last_checkpoint = time.monotonic()
     train_keys = jnp.stack([jax.random.fold_in(r.base_key, 1) for r in runs])
     states = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[r.state for r in runs])
     while step < until:
@@ -313,9 +320,11 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
                 for sink in run.sinks:
                     sink.log(step, result.summary(), "eval")
             progress.update(bar, status=evaluator.status(results))
-        if step % c.checkpoint_every == 0 or step == c.steps:
+        if (step % c.checkpoint_every == 0 or step == c.steps
+                or time.monotonic() - last_checkpoint >= CHECKPOINT_SECONDS):
             for run in runs:
                 save_checkpoint(run.out / CHECKPOINT_NAME, run.state)
+            last_checkpoint = time.monotonic()
         progress.update(bar, completed=step)  # the runs behind set the pace
 
 
