@@ -1,9 +1,10 @@
 """Time one jitted training step (method loss + IQL) per method and scale, on random data.
 
-    python benchmarks/train_step.py [--family HalfCheetahVel] [--methods bati recon]
+    python benchmarks/train_step.py [--family HalfCheetahVel] [--methods bati recon] [--scales quick paper]
 
-Prints a markdown table: milliseconds per gradient step (median over chunks of 20 steps, after
-compilation) for the quick (16 x 64, IQL 128x128) and paper (16 x 256, IQL 256x256) settings.
+Prints a markdown table: milliseconds per gradient step of one seed (median over chunks of 20 steps,
+after compilation) at each scale's batch and nets: quick and cpu (16 x 64, IQL 128x128), paper (16 x 256,
+IQL 256x256).
 """
 
 from __future__ import annotations
@@ -38,12 +39,13 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--family", default="HalfCheetahVel", choices=sorted(DIMS))
     parser.add_argument("--methods", nargs="+", default=["bati", "recon"])
+    parser.add_argument("--scales", nargs="+", default=["quick", "paper"], choices=["quick", "cpu", "paper"])
     parser.add_argument("--chunks", type=int, default=5)
     args = parser.parse_args()
     data = random_data(args.family)
     print("| family | method | scale | batch | IQL dims | ms / step |\n| --- | --- | --- | --- | --- | --- |")
     for method in args.methods:
-        for scale in ("quick", "paper"):
+        for scale in args.scales:
             config = TrainConfig(family=args.family, method=method, scale=scale).resolved()
             trainer = Trainer(config, data, family_of(config.family))
             state = trainer.init(jax.random.PRNGKey(0))
