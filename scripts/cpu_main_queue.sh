@@ -30,6 +30,14 @@ for job in $interrupted; do
     --out-dir "$out_dir" --data-root "$data_root" --workers 1
   echo "=== $family $method done rc=$? $(date -u)"
 done
+# FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the
+# baselines' fall on p_test? Its own output directory, so the main table's report is not touched.
+if [ -z "${SKIP_ABLATIONS:-}" ]; then
+  echo "=== AntDir focal distance=root-mean $(date -u)"
+  python -m bati.cli experiment main --scale cpu --families AntDir --methods focal --settings focal.distance=root-mean \
+    --out-dir "$(dirname "$out_dir")/focal-distance" --data-root "$data_root" --workers 1
+  echo "=== AntDir focal distance=root-mean done rc=$? $(date -u)"
+fi
 for methods in "$phase1" "$phase2"; do
   for family in $families; do
     python -m bati.cli data collect --family "$family" --scale paper --workers 2 --root "$data_root" || exit 1

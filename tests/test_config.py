@@ -16,6 +16,7 @@ from bati.config import (
     TrainConfig,
     apply_settings,
     differing_settings,
+    digest_view,
     family_of,
     method_sections,
     upgrade_record,
@@ -97,6 +98,26 @@ def test_an_old_record_upgrades_to_the_same_run():
     assert differing_settings(old, then, [k for k in then if k not in NOT_IDENTITY]) == []
     for changed in (config.record(), dataclasses.replace(config, csro=CSROConfig(club_weight=9.0)).resolved().record()):
         assert differing_settings(old, changed, [k for k in changed if k not in NOT_IDENTITY]) == ["csro"]
+
+
+def test_method_settings_added_later_keep_old_runs_and_their_digests():
+    """focal.distance came after runs were recorded: a section without it is the squared distance, the
+    run it always was, and its sweep digest does not change whether the field is written or not."""
+    for method, key in (("focal", "focal"), ("er-trl", "ertrl"), ("unicorn", "unicorn")):
+        config = TrainConfig(family="AntDir", method=method).resolved()
+        new = config.record()
+        old = json.loads(json.dumps(new))
+        old[key].pop("distance")
+        assert upgrade_record(old)[key] == new[key]
+        assert differing_settings(old, new, [k for k in new if k not in NOT_IDENTITY]) == []
+        other = dataclasses.replace(config, **{key: dataclasses.replace(getattr(config, key), push_weight=2.0)})
+        with_field = other.record()
+        without = json.loads(json.dumps(with_field))
+        without[key].pop("distance")
+        assert digest_view(with_field) == digest_view(without)
+        root_mean = dataclasses.replace(config, **{key: dataclasses.replace(getattr(config, key), distance="root-mean")})
+        assert differing_settings(old, root_mean.record(), [key]) == [key]
+        assert config_digest(root_mean) != config_digest(config)
 
 
 def test_committed_run_directories_keep_their_digests(monkeypatch):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -172,6 +173,39 @@ def test_focal_metric_loss_matches_hand_computation():
     np.testing.assert_allclose(metric_loss(z, labels, beta=2.0, eps=0.1), 1.0 + 2 * push, rtol=1e-6)
 
 
+def test_focal_root_mean_distance_matches_hand_computation_and_bad_values_name_their_section():
+    from bati.methods.er_trl import ERTRLConfig
+    from bati.methods.focal import FOCALConfig, metric_loss
+
+    z = jnp.array([[0.0, 0.0], [0.0, 1.0], [2.0, 0.0]])
+    labels = jnp.array([0, 0, 1])
+    # the code lineage's form, m = mean over the 2 dimensions: same pair m = 0.5, other pairs m = 2 and 2.5
+    expected = np.sqrt(0.5 + 1e-3) + np.mean([1 / 2.1, 1 / 2.6])
+    np.testing.assert_allclose(metric_loss(z, labels, 1.0, 0.1, "root-mean"), expected, rtol=1e-6)
+    # ours on the same latents: squared distances summed, 1 and 4, 5
+    np.testing.assert_allclose(metric_loss(z, labels, 1.0, 0.1, "squared"), 1.0 + np.mean([1 / 4.1, 1 / 5.1]), rtol=1e-6)
+    with pytest.raises(ValueError, match="^focal.distance must be one of squared, root-mean, got 'rms'$"):
+        FOCALConfig(distance="rms").check()
+    with pytest.raises(ValueError, match="^ertrl.distance must be one of"):
+        ERTRLConfig(distance="rms").check()
+    with pytest.raises(ValueError, match="^csro.distance must be one of"):  # through the config, before any work
+        TrainConfig(method="csro", csro=CSROConfig(distance="rms")).resolved()
+
+
+def test_every_focal_family_method_trains_with_the_root_mean_distance():
+    from bati.methods.focal import FOCALConfig
+
+    batch = _baseline_batch()
+    for name in ("focal", "unicorn", "csro", "er-trl"):
+        squared = make_method(name, SPEC)
+        config = dataclasses.replace(squared.config, distance="root-mean")
+        root_mean = make_method(name, SPEC, config)
+        params = squared.init(jax.random.PRNGKey(0))
+        (_, (_, a)), (_, (_, b)) = (m.loss(params, batch, jax.random.PRNGKey(1)) for m in (squared, root_mean))
+        assert np.isfinite(float(b["metric_loss"])) and float(a["metric_loss"]) != float(b["metric_loss"]), name
+    assert FOCALConfig().distance == "squared"
+
+
 def test_club_bound_on_a_gaussian_toy_with_known_mutual_information():
     from bati.methods.csro import club_estimate
     from bati.nets import gaussian_log_prob
@@ -268,8 +302,6 @@ def test_csro_fits_q_on_detached_latents_and_the_encoder_on_a_frozen_q(negatives
 
 
 def test_table3_weights_per_family():
-    import dataclasses
-
     for family, unicorn, club in [("AntDir", 0.15, 5.0), ("HalfCheetahVel", 0.15, 1.0), ("HalfCheetahDir", 0.15, 1.0),
                                   ("HopperParam", 1.5, 2.5), ("WalkerParam", 1.5, 2.5)]:
         spec = dataclasses.replace(SPEC, family=get_family(family).record)
@@ -325,8 +357,6 @@ def test_dpt_learns_the_experts_action_from_the_context():
 def test_dpt_with_discrete_actions_learns_the_experts_choice_from_the_context():
     """Discrete actions (KuhnPoker): a categorical head on one-hot actions; the toy expert picks action 1
     in the tasks with theta > 0, action 0 otherwise, and only the context's rewards tell them apart."""
-    import dataclasses
-
     method = make_method("dpt", dataclasses.replace(SPEC, discrete_actions=True, action_dim=2))
 
     def one_hot(transitions):

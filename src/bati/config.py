@@ -237,7 +237,7 @@ class TrainConfig:
         check_sinks(self.log_to)  # an unknown sink, or its package missing: before any work
         section = self.method_config()
         if hasattr(section, "check"):
-            section.check()
+            section.check(method_config_key(self.method))
         layers = {"iql.hidden_dims": self.iql.hidden_dims}
         if is_dataclass(section):
             layers |= {f"{method_config_key(self.method)}.{f.name}": getattr(section, f.name) for f in fields(section)
@@ -395,6 +395,13 @@ NOT_IDENTITY = ("out_dir", "data_root", "log_to", "zoo_dir")
 LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": None, "test_task_range": None,
                 "datasets": [], "task_key": None, "held_out": 0.2, "eval_env": None, "family_version": 1,
                 "zoo_dir": None}
+# Method hyperparameters added after runs were recorded (in every section whose Config has the field): a
+# saved section without one had this value. (csro.club_negatives is not one: its old value is not its default.)
+LATER_METHOD_FIELDS = {"distance": "squared"}
+
+
+def _without_later_method_fields(section: dict) -> dict:
+    return {k: v for k, v in section.items() if not (k in LATER_METHOD_FIELDS and v == LATER_METHOD_FIELDS[k])}
 
 
 def upgrade_record(record: dict) -> dict:
@@ -411,6 +418,11 @@ def upgrade_record(record: dict) -> dict:
     if record.get("method") == "csro" and "club_negatives" not in (record.get("csro") or {}):
         section = record.get("csro") or default_method_record(record.get("family"), "csro")
         record["csro"] = {**section, "club_negatives": "any-task"}
+    for name, cls in method_sections().items():
+        section = record.get(name)
+        if isinstance(section, dict):
+            names = {f.name for f in fields(cls)}
+            record[name] = {**{k: v for k, v in LATER_METHOD_FIELDS.items() if k in names}, **section}
     return record
 
 
@@ -450,8 +462,11 @@ def digest_view(record: dict) -> dict:
     keeps its digest (and its run directory)."""
     view = {k: v for k, v in record.items() if not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
     for name in method_sections():
-        if name in view and view[name] == default_method_record(record.get("family"), record.get("method")):
-            view.pop(name)
+        if isinstance(view.get(name), dict):
+            view[name] = _without_later_method_fields(view[name])
+            default = default_method_record(record.get("family"), record.get("method"))
+            if default is not None and view[name] == _without_later_method_fields(default):
+                view.pop(name)
     iql = view.get("iql")
     if isinstance(iql, dict):
         view["iql"] = {("beta" if k == "temperature" else k): v for k, v in iql.items()}

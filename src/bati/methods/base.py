@@ -44,7 +44,8 @@ class TaskInference:
     """Base class: the flags tell the training step what to put into the batch.
 
     A method with hyperparameters declares them as a frozen dataclass `Config` (every field with a
-    typed default); `config_key` names the TrainConfig field that holds it (`bati train --csro.club-weight
+    typed default) and, if some values are bad, `check(section)` raising a one-line ValueError that names
+    `section.<setting>`; `config_key` names the TrainConfig field that holds it (`bati train --csro.club-weight
     2.5`), shared by variants of one method (bati, bati-r and bati-auto all read `bati`).
     """
 

@@ -37,12 +37,12 @@ class BATIConfig:
     """Refined inference (ours): Adam steps on the posterior of z after Eq. 8's arg-min (0: the paper's BATI)."""
     refine_learning_rate: float = 0.01
 
-    def check(self) -> None:
-        """ValueError (one line) for settings BATI cannot run with."""
+    def check(self, section: str = "bati") -> None:
+        """ValueError (one line, naming `section`.<setting>) for settings BATI cannot run with."""
         if isinstance(self.latent_samples, bool) or not isinstance(self.latent_samples, int) or self.latent_samples < 1:
-            raise ValueError(f"bati.latent_samples must be an integer >= 1, got {self.latent_samples!r}")
+            raise ValueError(f"{section}.latent_samples must be an integer >= 1, got {self.latent_samples!r}")
         if isinstance(self.refine_steps, bool) or not isinstance(self.refine_steps, int) or self.refine_steps < 0:
-            raise ValueError(f"bati.refine_steps must be an integer >= 0, got {self.refine_steps!r}")
+            raise ValueError(f"{section}.refine_steps must be an integer >= 0, got {self.refine_steps!r}")
 
 
 class BATI(TaskInference):

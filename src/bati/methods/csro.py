@@ -44,9 +44,10 @@ class CSROConfig(FOCALConfig):
     """CLUB's negative pairs: every transition of the latent's own task (the official code) or one random
     transition of the batch (the marginal CLUB, bati's before 2026-11-25: its latents collapse)."""
 
-    def check(self) -> None:
+    def check(self, section: str = "csro") -> None:
+        super().check(section)
         if self.club_negatives not in ("same-task", "any-task"):
-            raise ValueError(f"csro.club_negatives must be 'same-task' or 'any-task', got {self.club_negatives!r}")
+            raise ValueError(f"{section}.club_negatives must be 'same-task' or 'any-task', got {self.club_negatives!r}")
 
     def for_family(self, record: FamilyRecord | None) -> CSROConfig:
         if self.club_weight is not None:

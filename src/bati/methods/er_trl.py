@@ -49,8 +49,9 @@ class ERTRLConfig(FOCALConfig):
             return self
         return replace(self, entropy_weight=record.entropy_weight if record else record_default("entropy_weight"))
 
-    def check(self) -> None:
-        check_integer("ertrl.noise_dim", self.noise_dim)
+    def check(self, section: str = "ertrl") -> None:
+        super().check(section)
+        check_integer(f"{section}.noise_dim", self.noise_dim)
 
 
 def gaussian_entropy(samples: jax.Array, epsilon: float = 1e-5) -> jax.Array:

@@ -4,11 +4,17 @@ Latents of two contexts of the same task are pulled together (squared distance);
 different tasks are pushed apart by an inverse-square term beta / (||z_i - z_j||^2 + eps). Each
 training batch holds two independent contexts of each of its 16 tasks (Table 3's task
 contrastive batch size), so every task has one positive pair and 2 x 2 x 15 negatives.
+
+`distance` picks how a pair's distance enters: "squared" (default) as above, with the squared distance
+summed over the latent's d dimensions; "root-mean", the form of the FOCAL / CSRO / ER-TRL code lineage,
+with m = mean over dimensions of (z_i - z_j)^2: pull sqrt(m + 1e-3), push beta / (m + eps). The second
+pulls less hard near coincidence and pushes d times further out (docs/methods.md, "FOCAL").
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -24,19 +30,39 @@ class FOCALConfig:
     """beta: weight of the inverse-square push between latents of different tasks."""
     push_epsilon: float = 0.1
     """eps: bounds the push at beta / eps when two latents coincide."""
+    distance: Literal["squared", "root-mean"] = "squared"
+    """How a pair's distance enters: squared and summed over dimensions (ours), or the code lineage's
+    root-mean-square pull and mean-square push (module docstring)."""
+
+    def check(self, section: str = "focal") -> None:
+        """ValueError naming `section`.<setting> (the TrainConfig field holding these settings) for a bad value."""
+        if self.distance not in DISTANCES:
+            raise ValueError(f"{section}.distance must be one of {', '.join(DISTANCES)}, got {self.distance!r}")
+
+
+DISTANCES = ("squared", "root-mean")
+PULL_EPSILON = 1e-3
+"""Keeps the root-mean pull's gradient finite at coincidence (the code lineage's value)."""
 
 
 def metric_loss(z: jax.Array, labels: jax.Array, beta: float = FOCALConfig.push_weight,
-                eps: float = FOCALConfig.push_epsilon) -> jax.Array:
+                eps: float = FOCALConfig.push_epsilon, distance: str = FOCALConfig.distance) -> jax.Array:
     """FOCAL's distance metric loss over all pairs i < j of latents z (N, d) with task labels (N,).
 
-    Mean squared distance over same-task pairs plus mean inverse-square push over the other pairs.
+    Mean pull over same-task pairs plus mean inverse-square push over the other pairs; `distance` as in
+    the module docstring.
     """
-    sq_dist = jnp.sum((z[:, None, :] - z[None, :, :]) ** 2, axis=-1)
+    sq_diff = (z[:, None, :] - z[None, :, :]) ** 2
+    if distance == "squared":
+        sq_dist = jnp.sum(sq_diff, axis=-1)
+        pull_dist = sq_dist
+    else:  # root-mean
+        sq_dist = jnp.mean(sq_diff, axis=-1)
+        pull_dist = jnp.sqrt(sq_dist + PULL_EPSILON)
     pairs = jnp.triu(jnp.ones_like(sq_dist, dtype=bool), k=1)
     same = (labels[:, None] == labels[None, :]) & pairs
     different = ~(labels[:, None] == labels[None, :]) & pairs
-    pull = jnp.sum(jnp.where(same, sq_dist, 0.0)) / jnp.maximum(same.sum(), 1)
+    pull = jnp.sum(jnp.where(same, pull_dist, 0.0)) / jnp.maximum(same.sum(), 1)
     push = jnp.sum(jnp.where(different, beta / (sq_dist + eps), 0.0)) / jnp.maximum(different.sum(), 1)
     return pull + push
 
@@ -64,7 +90,7 @@ class FOCAL(TaskInference):
         z_positive = self.encoder.apply(params["encoder"], batch["positive_context"])
         labels = jnp.concatenate([batch["task_ids"], batch["task_ids"]])
         return metric_loss(jnp.concatenate([z, z_positive]), labels, self.config.push_weight,
-                           self.config.push_epsilon)
+                           self.config.push_epsilon, self.config.distance)
 
     def loss(self, params, batch, key):
         loss, z = self.contrastive_loss(params, batch)
