@@ -3,18 +3,32 @@
 #   PYTHONPATH=$PWD/src nohup nice bash scripts/cpu_main_queue.sh /work/run-data /work/main/results/cpu/experiments \
 #       > cpu-queue.log 2>&1 &   (PYTHONPATH: this checkout's code, not the editable install's)
 # Each line is a resumable `bati experiment`: finished cells are skipped (in seconds), an interrupted job resumes
-# from its checkpoints (a run checkpoints at least every 10 minutes). Run it from an archive of a fixed commit
+# from its checkpoints (a run checkpoints at least every 10 minutes) when the machine still holds them. Every job
+# trains one seed: a work session lasts 3 hours on a fresh machine (checkpoints are git-ignored and do not outlive
+# it), so a job must finish inside one; on 2 cores one seed at a time is also no slower than three vmapped seeds
+# (ER-TRL: ~26 ms per seed-step alone, ~45 in a 3-seed program; docs/performance.md). Run it from an archive of a fixed commit
 # (git worktree add ../bg-<commit> <commit>) so that the code does not change under a running job; results go into
 # this checkout's results/cpu/experiments.
-# Order: claims first. A 3-seed job costs ~1 h on this project's 2-core machine (ER-TRL ~4 h, Recon ~2 h, with other
-# work on the cores), so the table takes many sessions: phase 1 runs, family by family, the methods that the claims
-# C1-C3 compare (BATI, its reward-only variant, the paper's baselines, the Oracle and the no-context floor), then the
-# AntDir noise ablation (C4), then phase 2: the others (ER-TRL, BATI-auto, DPT) on every family.
+# Order: claims first. A seed costs ~20 min on this project's 2-core machine (ER-TRL ~1 h, Recon and BATI-R ~45 min,
+# with other work on the cores), so the table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL
+# (issue 28), the FOCAL distance ablation, then phase 1: family by family, the methods that the claims C1-C3 compare
+# (BATI, its reward-only variant, the paper's baselines, the Oracle and the no-context floor), then the AntDir noise
+# ablation (C4), then phase 2: the others (ER-TRL, BATI-auto, DPT) on every family.
 # After a job: `bati experiment main --scale cpu --report-only --out-dir results/cpu/experiments --data-root DATA`
 # and `bati claims` regenerate the report and docs/claims.md; commit the cells (checkpoints are git-ignored).
 set -u
 data_root=${1:-data}
 out_dir=${2:-$(pwd)/results/cpu/experiments}
+seeds=${SEEDS:-"0 1 2"}
+job() {  # $1 experiment, $2 family, $3 method, the rest: more options; one seed at a time
+  local experiment=$1 family=$2 method=$3; shift 3
+  for seed in $seeds; do
+    echo "=== $family $method seed $seed ($experiment $*) $(date -u)"
+    python -m bati.cli experiment "$experiment" --scale cpu --families "$family" --methods "$method" --seeds "$seed" \
+      --data-root "$data_root" --workers 1 "$@"
+    echo "=== $family $method seed $seed done rc=$? $(date -u)"
+  done
+}
 families=${FAMILIES:-"AntDir HalfCheetahVel HalfCheetahDir HopperParam WalkerParam"}
 phase1=${PHASE1:-"oracle bati bati-r focal csro unicorn recon no-context"}
 phase2=${PHASE2:-"er-trl bati-auto dpt"}
@@ -27,28 +41,19 @@ interrupted=$(for ckpt in "$out_dir"/*/cpu-eps*/*-seed*/checkpoint.msgpack; do
 done | sort -u)
 for job in $interrupted; do
   IFS=: read -r experiment family method <<< "$job"
-  echo "=== $family $method ($experiment, interrupted) $(date -u)"
-  python -m bati.cli experiment "$experiment" --scale cpu --families "$family" --methods "$method" \
-    --out-dir "$out_dir" --data-root "$data_root" --workers 1
-  echo "=== $family $method done rc=$? $(date -u)"
+  job "$experiment" "$family" "$method" --out-dir "$out_dir"
 done
+python -m bati.cli data collect --family AntDir --scale paper --workers 2 --root "$data_root" || exit 1
+for method in csro er-trl; do job main AntDir "$method" --out-dir "$out_dir"; done
 # FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the
 # baselines' fall on p_test? Its own output directory, so the main table's report is not touched.
 if [ -z "${SKIP_ABLATIONS:-}" ]; then
-  echo "=== AntDir focal distance=root-mean $(date -u)"
-  python -m bati.cli experiment main --scale cpu --families AntDir --methods focal --settings focal.distance=root-mean \
-    --out-dir "$(dirname "$out_dir")/focal-distance" --data-root "$data_root" --workers 1
-  echo "=== AntDir focal distance=root-mean done rc=$? $(date -u)"
+  job main AntDir focal --settings focal.distance=root-mean --out-dir "$(dirname "$out_dir")/focal-distance"
 fi
 main_phase() {  # $1: the methods, each on every family
   for family in $families; do
     python -m bati.cli data collect --family "$family" --scale paper --workers 2 --root "$data_root" || exit 1
-    for method in $1; do
-      echo "=== $family $method $(date -u)"
-      python -m bati.cli experiment main --scale cpu --families "$family" --methods "$method" \
-        --out-dir "$out_dir" --data-root "$data_root" --workers 1
-      echo "=== $family $method done rc=$? $(date -u)"
-    done
+    for method in $1; do job main "$family" "$method" --out-dir "$out_dir"; done
   done
 }
 main_phase "$phase1"
@@ -58,9 +63,6 @@ for noise in 0 0.5; do
   python -m bati.cli data collect --family AntDir --scale paper --noise "$noise" --workers 2 --root "$data_root" || exit 1
 done
 for method in ${NOISE_METHODS:-"bati bati-r focal csro unicorn recon er-trl"}; do
-  echo "=== AntDir noise $method $(date -u)"
-  python -m bati.cli experiment noise --scale cpu --families AntDir --methods "$method" \
-    --out-dir "$out_dir" --data-root "$data_root" --workers 1
-  echo "=== AntDir noise $method done rc=$? $(date -u)"
+  job noise AntDir "$method" --out-dir "$out_dir"
 done
 main_phase "$phase2"

@@ -170,3 +170,18 @@ def test_bati_train_rejects_settings_beside_config(tmp_path, capsys):
     assert main(["train", "--bati.latent-samples", "0", "--out-dir", str(tmp_path / "new")]) == 2
     assert "bati.latent_samples must be an integer >= 1" in capsys.readouterr().err
     assert not (tmp_path / "new").exists()
+
+
+def test_another_methods_hyperparameters_are_refused_in_one_line(tmp_path, capsys):
+    """A method never reads another method's section: setting it would record a config whose setting did
+    nothing (and give the run a digest of its own), so it is refused before any work."""
+    with pytest.raises(ValueError, match=r"focal.distance is read by focal only, not by csro \(which reads csro"):
+        apply_settings(TrainConfig(method="csro"), {"focal.distance": "root-mean"}).resolved()
+    with pytest.raises(ValueError, match="bati.latent_samples is read by bati, bati-r, bati-auto only, not by "
+                                         r"oracle \(which has no hyperparameters of its own\)"):
+        apply_settings(TrainConfig(method="oracle"), {"bati.latent_samples": 7}).resolved()
+    apply_settings(TrainConfig(method="csro"), {"csro.distance": "root-mean"}).resolved()  # its own: fine
+    assert main(["train", "--method", "focal", "--bati.latent-samples", "3", "--out-dir", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert "bati.latent_samples is read by bati" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "r").exists()

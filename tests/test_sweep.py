@@ -258,3 +258,17 @@ def test_cli_experiment_report_only_trains_nothing_and_covers_every_cell(tmp_pat
     n_cells = len(plan_experiment(get_spec("ood-tasks"), "quick", out).cells)  # every method, not only bati
     assert f"cells finished: 0 of {n_cells}" in report and "--methods" not in report
     assert "nothing trained" in capsys.readouterr().out and not data.exists()
+
+
+def test_a_method_setting_goes_only_to_the_methods_that_read_it(tmp_path):
+    """`--settings focal.distance=root-mean` on a focal + bati grid changes FOCAL's cells (a new setting
+    directory) and leaves BATI's where the default puts them; a setting no method of the grid reads is refused."""
+    default = {c.config.method: c for c in expand(Grid(methods=("focal", "bati")), tmp_path)}
+    mixed = {c.config.method: c for c in expand(Grid(methods=("focal", "bati"), settings=("focal.distance=root-mean",)),
+                                                 tmp_path)}
+    assert mixed["focal"].config.focal.distance == "root-mean" and mixed["focal"].id != default["focal"].id
+    assert mixed["focal"].config.out_dir.parent != default["focal"].config.out_dir.parent
+    assert mixed["bati"].id == default["bati"].id and mixed["bati"].config.out_dir == default["bati"].config.out_dir
+    with pytest.raises(SweepError, match=r"focal.distance is read by focal only; none of the grid's methods "
+                                         r"\(bati, oracle\) reads it"):
+        expand(Grid(methods=("bati", "oracle"), settings=("focal.distance=root-mean",)), tmp_path)

@@ -235,6 +235,7 @@ class TrainConfig:
                                ("iql.temperature", self.iql.temperature)):
             check_number(setting, value)
         check_sinks(self.log_to)  # an unknown sink, or its package missing: before any work
+        check_foreign_sections(self, family.record)
         section = self.method_config()
         if hasattr(section, "check"):
             section.check(method_config_key(self.method))
@@ -359,6 +360,28 @@ def method_sections() -> dict[str, type]:
     """TrainConfig's per-method fields: name -> the Config dataclass it holds."""
     return {"bati": BATIConfig, "focal": FOCALConfig, "unicorn": UNICORNConfig, "csro": CSROConfig,
             "dpt": DPTConfig, "ertrl": ERTRLConfig}
+
+
+def section_readers(section: str) -> list[str]:
+    """The methods that read the hyperparameter section `section` (e.g. bati, bati-r and bati-auto read `bati`)."""
+    from bati.methods import METHODS
+
+    return [name for name, cls in METHODS.items() if cls.config_key == section]
+
+
+def check_foreign_sections(config: TrainConfig, record) -> None:
+    """ValueError (one line) when `config` sets another method's hyperparameters, which its method never
+    reads (e.g. --focal.distance on a csro run: CSRO reads --csro.distance)."""
+    own = method_config_key(config.method)
+    for name, cls in method_sections().items():
+        if name == own:
+            continue
+        given, default = _for_family(getattr(config, name), record), _for_family(cls(), record)
+        changed = [f.name for f in fields(cls) if getattr(given, f.name) != getattr(default, f.name)]
+        if changed:
+            reads = f"which reads {own}.*" if own else "which has no hyperparameters of its own"
+            raise ValueError(f"{name}.{changed[0]} is read by {', '.join(section_readers(name))} only, not by "
+                             f"{config.method} ({reads})")
 
 
 def method_config_key(method: str) -> str | None:

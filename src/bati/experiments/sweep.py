@@ -30,7 +30,8 @@ from typing import Any, Literal
 
 from bati.errors import BatiError
 from bati.io import atomic_write_json, hold_lock
-from bati.config import NOT_IDENTITY, ScaleName, TrainConfig, apply_settings, differing_settings, digest_view, settable_names
+from bati.config import (NOT_IDENTITY, ScaleName, TrainConfig, apply_settings, differing_settings, digest_view,
+                         method_config_key, method_sections, section_readers, settable_names)
 
 AXES = ("family", "method", "seed", "scale", "noise")
 """Grid axes; every other TrainConfig field can be set for all cells with `overrides`."""
@@ -118,6 +119,11 @@ def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Ce
     overrides = grid.overrides()
     try:
         methods = method_names(grid.methods)
+        section_settings = {key for key in overrides if key.partition(".")[0] in method_sections()}
+        for key in section_settings:  # a method's hyperparameter goes to the cells of the methods that read it
+            if not any(method_config_key(m) == key.partition(".")[0] for m in methods):
+                raise SweepError(f"{key} is read by {', '.join(section_readers(key.partition('.')[0]))} only; "
+                                 f"none of the grid's methods ({', '.join(methods)}) reads it")
         families = [get_family(name).name for name in dict.fromkeys(grid.families)]
         cells = []
         for family in families:
@@ -126,8 +132,10 @@ def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Ce
                 for noise in noises:
                     for method in methods:
                         for seed in dict.fromkeys(grid.seeds):
+                            own = {k: v for k, v in overrides.items() if k not in section_settings
+                                   or k.partition(".")[0] == method_config_key(method)}
                             config = apply_settings(TrainConfig(family=family, method=method, seed=seed, scale=scale,
-                                                                noise=noise, data_root=data_root), overrides).resolved()
+                                                                noise=noise, data_root=data_root), own).resolved()
                             cells.append(Cell(replace(config, out_dir=run_dir(out_dir, config))))
     except (ValueError, TypeError) as err:  # TaskError is a ValueError
         raise SweepError(str(err)) from err
