@@ -41,7 +41,7 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--family", default="HalfCheetahVel", choices=sorted(DIMS))
     parser.add_argument("--method", default="bati")
-    parser.add_argument("--scale", default="paper", choices=("quick", "paper"))
+    parser.add_argument("--scale", default="paper", choices=("quick", "cpu", "paper"))
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 3, 8])
     parser.add_argument("--length", type=int, default=20)
     parser.add_argument("--chunks", type=int, default=3)
