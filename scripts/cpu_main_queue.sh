@@ -9,8 +9,8 @@
 # (AntDir ER-TRL at the cpu scale: 40.0 ms per step for one seed, 135.6 ms for three; docs/performance.md). Run it from an archive of a fixed commit
 # (git worktree add ../bg-<commit> <commit>) so that the code does not change under a running job; results go into
 # this checkout's results/cpu/experiments.
-# Order: claims first. A seed costs ~20 min on this project's 2-core machine (ER-TRL ~1 h, Recon and BATI-R ~45 min,
-# with other work on the cores), so the table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL
+# Order: claims first. A seed costs 20-80 min on this project's 2-core machine (IQL alone ~20 min; CSRO and ER-TRL
+# ~1-1.3 h, Recon and BATI-R ~45 min, with other work on the cores), so the table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL
 # (issue 28), the FOCAL distance ablation, then phase 1: family by family, the methods that the claims C1-C3 compare
 # (BATI, its reward-only variant, the paper's baselines, the Oracle and the no-context floor), then the AntDir noise
 # ablation (C4), then phase 2: the others (ER-TRL, BATI-auto, DPT) on every family.
