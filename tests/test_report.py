@@ -381,3 +381,29 @@ def test_a_method_setting_off_its_default_is_a_table_of_its_own_named_by_it(tmp_
     assert set(titles) == {("bati", "csro"), ("csro",)}  # today's CSRO beside BATI, the old one apart
     assert "club_negatives = any-task" in titles[("csro",)] and "club_weight" not in titles[("csro",)]
     assert "csro" not in titles[("bati", "csro")]
+
+
+def test_runs_with_different_references_say_so_and_keep_their_own_normalisation(tmp_path):
+    """Runs of one setting whose data were collected on different machines record different expert
+    references (a chaotic rollout amplifies the last bits of a float): the report says the range."""
+    write_run(tmp_path, "PointGoal", "bati", 0, -280.0, -300.0, 0.2, 0.3)
+    other = write_run(tmp_path, "PointGoal", "recon", 0, -270.0, -400.0, 0.1, 1.2)
+    summary = json.loads((other / "eval.json").read_text())
+    summary["reference_returns"]["expert"] = -200.0
+    (other / "eval.json").write_text(json.dumps(summary))
+    report = build_report(tmp_path, reps=50)
+    markdown = table(report, "PointGoal")["markdown"]
+    assert "experts -225.0 (means over runs; the runs' own differ: expert -250.0 to -200.0" in markdown
+    assert row(table(report, "PointGoal"), "recon")["p_test_normalised_mean"] == pytest.approx(100.0 / 300.0)
+    (other / "eval.json").write_text(json.dumps({**summary, "reference_returns": {"random": RANDOM, "expert": EXPERT}}))
+    assert "differ" not in table(build_report(tmp_path, reps=50), "PointGoal")["markdown"]
+
+
+def test_the_device_names_the_cpu_model(tmp_path):
+    from bati.train import cpu_model
+
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC   7B13\nflags\t: fpu\n")
+    assert cpu_model(info) == "AMD EPYC 7B13"
+    info.write_text("processor\t: 0\n")
+    assert cpu_model(info) == "CPU" and cpu_model(tmp_path / "missing") == "CPU"

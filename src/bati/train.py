@@ -370,11 +370,24 @@ def open_run(run_dir: Path, finished: bool = False) -> FinishedRun:
 
 
 def describe_device() -> str:
-    """The accelerator JAX runs on, as JAX reports it (e.g. "gpu: NVIDIA H100 80GB HBM3 x1")."""
+    """The accelerator JAX runs on, as JAX reports it (e.g. "gpu: NVIDIA H100 80GB HBM3 x1"); on a CPU its
+    model too (e.g. "cpu: 2-core AMD EPYC (x86_64) x1"): XLA's kernels, and with them the last bits of a float,
+    differ between CPU models, which a chaotic MuJoCo rollout amplifies (docs/reliability.md)."""
     devices = jax.devices()
     first = devices[0]
-    kind = first.device_kind if first.platform != "cpu" else f"{os.cpu_count()}-core CPU ({platform.machine()})"
+    kind = first.device_kind if first.platform != "cpu" else f"{os.cpu_count()}-core {cpu_model()} ({platform.machine()})"
     return f"{first.platform}: {kind} x{len(devices)}"
+
+
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The CPU's model name from /proc/cpuinfo ("CPU" where there is none, e.g. not on Linux)."""
+    try:
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name") and ":" in line:
+                return " ".join(line.split(":", 1)[1].split()) or "CPU"
+    except OSError:
+        pass
+    return "CPU"
 
 
 def summarize_run(out: Path, last: int = 5) -> dict:

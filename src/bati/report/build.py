@@ -207,6 +207,19 @@ def group_title(group: Group, extra_keys: list[str]) -> str:
     return ", ".join(parts)
 
 
+def _reference_spread(group: Group, digits: int) -> str:
+    """Where the runs of a group recorded different references (their data and references were computed on
+    different machines): the range, and that each run is normalised by its own."""
+    refs = [r.reference_returns for r in group.runs if r.reference_returns is not None]
+    spread = {k: (min(ref[k] for ref in refs), max(ref[k] for ref in refs)) for k in ("random", "expert")}
+    differing = [f"{name} {low:.{digits}f} to {high:.{digits}f}" for name, (low, high) in spread.items()
+                 if f"{low:.{digits}f}" != f"{high:.{digits}f}"]
+    if not differing:
+        return ""
+    return (f" (means over runs; the runs' own differ: {', '.join(differing)}, so their data came from different "
+            "collections; each run is normalised by its own)")
+
+
 def group_description(group: Group) -> str:
     """The settings line under a table's title: steps, batch, data size, references, provenance."""
     s, lines = group.settings, []
@@ -236,7 +249,7 @@ def group_description(group: Group) -> str:
         partial = "" if group.normalised else " (some runs lack them: no normalised scores)"
         d = return_digits(refs["random"], refs["expert"])
         lines.append(f"References (test tasks, same eps): random policy {refs['random']:.{d}f}, "
-                     f"experts {refs['expert']:.{d}f}{partial}.")
+                     f"experts {refs['expert']:.{d}f}{partial}{_reference_spread(group, d)}.")
     else:
         lines.append("References: not recorded (no normalised scores).")
     evals = sorted({r.evaluations_averaged for r in group.runs if r.evaluations_averaged is not None})
