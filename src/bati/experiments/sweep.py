@@ -119,10 +119,11 @@ def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Ce
     overrides = grid.overrides()
     try:
         methods = method_names(grid.methods)
-        section_settings = {key for key in overrides if key.partition(".")[0] in method_sections()}
-        for key in section_settings:  # a method's hyperparameter goes to the cells of the methods that read it
-            if not any(method_config_key(m) == key.partition(".")[0] for m in methods):
-                raise SweepError(f"{key} is read by {', '.join(section_readers(key.partition('.')[0]))} only; "
+        # A method's hyperparameter (`focal.distance=...`) goes to the cells of the methods that read its section.
+        sections = {key: key.partition(".")[0] for key in overrides if key.partition(".")[0] in method_sections()}
+        for key, section in sections.items():
+            if section not in {method_config_key(m) for m in methods}:
+                raise SweepError(f"{key} is read by {', '.join(section_readers(section))} only; "
                                  f"none of the grid's methods ({', '.join(methods)}) reads it")
         families = [get_family(name).name for name in dict.fromkeys(grid.families)]
         cells = []
@@ -132,8 +133,8 @@ def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Ce
                 for noise in noises:
                     for method in methods:
                         for seed in dict.fromkeys(grid.seeds):
-                            own = {k: v for k, v in overrides.items() if k not in section_settings
-                                   or k.partition(".")[0] == method_config_key(method)}
+                            own = {k: v for k, v in overrides.items()
+                                   if k not in sections or sections[k] == method_config_key(method)}
                             config = apply_settings(TrainConfig(family=family, method=method, seed=seed, scale=scale,
                                                                 noise=noise, data_root=data_root), own).resolved()
                             cells.append(Cell(replace(config, out_dir=run_dir(out_dir, config))))
