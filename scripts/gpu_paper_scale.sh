@@ -1,52 +1,117 @@
 #!/usr/bin/env bash
-# One device call's worth of the paper scale on a lent GPU machine (issue 29). Run it there as the whole command:
-#   run(command="FAMILIES=AntDir bash scripts/gpu_paper_scale.sh", carry=[".whl"], timeout_s=600)
-# after `bash scripts/gpu_wheels.sh` here. It installs the wheels (when the machine lacks MuJoCo), collects the
-# families' paper data over all cores, trains `bati experiment main` at SCALE for FAMILIES x METHODS x SEEDS with
-# WORKERS jobs at a time (evaluation is CPU MuJoCo: parallel jobs keep the GPU busy), stops before BUDGET_S
-# (a killed job resumes from its last checkpoint on the next call while the machine is still warm; a bare
-# machine starts the job again), and packs every result file but the checkpoints into
-# $OUT/results-<stamp>.tar.gz. Here: tar xzf it into results/<scale>/experiments, then
-# `bati experiment main --scale paper --report-only --out-dir results/paper/experiments` and `bati claims`.
-# A CPU dry run of the same path: SCALE=quick SETTINGS="steps=200 eval_every=100" DATA=... bash this file.
+# The paper scale on a lent GPU machine (issue 29), after `bash scripts/gpu_wheels.sh` here. Three modes (MODE):
+#   start   (first device call)  installs the wheels, starts the whole session's work DETACHED (setsid: it outlives
+#           the call and runs while the machine stays warm, i.e. while the next call follows within ~30 s), then
+#           watches it for WATCH_S seconds and packs what is finished into $OUT;
+#   watch   (each later call)    watches the detached work for WATCH_S seconds and packs again;
+#   fg      (a CPU dry run)      the same work in the foreground, stopped at BUDGET_S, then packed.
+#   run(command="MODE=start FAMILIES='AntDir HalfCheetahVel' bash scripts/gpu_paper_scale.sh", carry=[".whl"])
+#   run(command="MODE=watch bash scripts/gpu_paper_scale.sh", carry=[".whl"])       # within 30 s of the last reply
+# The work: BENCH=1 first measures seed-steps/s at k = 1 3 5 8 (benchmarks/seed_throughput.py, pinned to core 0
+# while the first family's data is collected on the other cores; the experiment waits for it: on 2026-11-25 its
+# compiles took over 9 minutes); then per family: collect its paper data over all cores (the next family's
+# collection runs beside the current experiment, niced, on a quarter of the cores), and `bati experiment main
+# --scale SCALE` for METHODS x SEEDS, one job at a time (WORKERS; a job is one method's seeds vmapped in one
+# program), its evaluation's MuJoCo envs stepped by EVAL_WORKERS processes. Measured on an H100 (2026-11-25,
+# docs/performance.md): three jobs side by side ran 4.3-5.6 ms per step each against 0.9 ms for one alone (the
+# processes time-slice the GPU), while one evaluation of 3 seeds took 16 s on one core: so one job at a time, and
+# evaluation over the spare cores.
+# Each pack is $OUT/results-<stamp>.tar.gz: every result file but checkpoints, plus session.log and bench.md.
+# Here: tar xzf it into results/<scale>/experiments, then `bati experiment main --scale paper --report-only
+# --out-dir results/paper/experiments` and `bati claims`.
+# CPU dry run: MODE=fg SCALE=quick METHODS=bati SEEDS="0 1" SETTINGS="steps=200" DATA=... bash this file.
 set -u
+mode=${MODE:-fg}
 scale=${SCALE:-paper}
 families=${FAMILIES:-AntDir}
-methods=${METHODS:-"oracle bati bati-r recon focal unicorn csro no-context er-trl bati-auto dpt"}
+methods=${METHODS:-"oracle bati bati-r focal csro unicorn recon no-context"}
 seeds=${SEEDS:-"0 1 2 3 4"}
-workers=${WORKERS:-4}
-settings=${SETTINGS:-}
+workers=${WORKERS:-1}
+cores=$(nproc)
+eval_workers=${EVAL_WORKERS:-$((cores > 5 ? cores - 4 : 1))}
+settings="eval_workers=$eval_workers${SETTINGS:+ $SETTINGS}"
 budget=${BUDGET_S:-540}
+watch=${WATCH_S:-540}
 data=${DATA:-/tmp/bati-data}
 results=${RESULTS:-/tmp/bati-results}
 out=${OUT:-/tmp/bati-out}
 start=$(date +%s)
-if ! python3 -c "import mujoco, gymnasium, minari, tyro" 2>/dev/null; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-    || { echo "no wheels to install: run scripts/gpu_wheels.sh here and carry .whl"; exit 2; }
-  export PYTHONPATH=/tmp/site
-fi
-export PYTHONPATH=$PWD/src${PYTHONPATH:+:$PYTHONPATH} MUJOCO_GL=${MUJOCO_GL:-glfw} XLA_PYTHON_CLIENT_PREALLOCATE=false
 mkdir -p "$out" "$results"
-data_scale=paper; [ "$scale" = quick ] && data_scale=quick
-for family in $families; do
-  python3 -m bati.cli data collect --family "$family" --scale $data_scale --workers "$(nproc)" --root "$data" || exit 1
-done
-echo "data ready after $(( $(date +%s) - start )) s"
-left=$(( budget - ($(date +%s) - start) ))
-set -m  # the experiment gets its own process group: the budget stops its worker processes too
-# shellcheck disable=SC2086  # word lists on purpose
-python3 -m bati.cli experiment main --scale "$scale" --families $families --methods $methods --seeds $seeds \
-  --workers "$workers" --data-root "$data" --out-dir "$results" ${settings:+--settings $settings} \
-  > "$results/experiment.log" 2>&1 &
-job=$!
-( sleep "$left"; kill -TERM -- -"$job"; sleep 20; kill -KILL -- -"$job" ) >/dev/null 2>&1 </dev/null &
-watchdog=$!
-wait "$job"; rc=$?
-kill -- -"$watchdog" 2>/dev/null  # its sleep too: nothing may outlive the command
-set +m
-echo "experiment exit $rc after $(( $(date +%s) - start )) s (143 or 137: stopped at the budget; run again to resume)"
-tail -3 "$results/experiment.log"
-pack="$out/results-$(date -u +%Y%m%dT%H%M%S).tar.gz"
-tar czf "$pack" --exclude=checkpoint.msgpack --exclude='*.lock' --exclude='.*.tmp' -C "$results" .
-echo "packed $(find "$results" -name eval.json | wc -l) finished run(s) into $pack ($(du -h "$pack" | cut -f1))"
+
+install() {
+  if ! python3 -c "import mujoco, gymnasium, minari, tyro, rliable" 2>/dev/null; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
+      .whl/*.whl || { echo "no wheels to install: run scripts/gpu_wheels.sh here and carry .whl"; exit 2; }
+    export PYTHONPATH=/tmp/site
+  fi
+  export PYTHONPATH=$PWD/src${PYTHONPATH:+:$PYTHONPATH} MUJOCO_GL=${MUJOCO_GL:-glfw} \
+    XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
+}
+
+collect() {  # $1 family, $2 workers
+  python3 -m bati.cli data collect --family "$1" --scale "$data_scale" --workers "$2" --root "$data" \
+    > "$results/collect-$1.log" 2>&1
+}
+
+work() {  # the session's work: benchmark, then family after family
+  data_scale=paper; [ "$scale" = quick ] && data_scale=quick
+  set -- $families
+  if [ -n "${BENCH:-}" ]; then
+    taskset -c 0 python3 benchmarks/seed_throughput.py --family "$1" --method bati --scale "$scale" \
+      --seeds 1 3 5 8 --length "${BENCH_LENGTH:-20}" --chunks 3 > "$results/bench.md" 2>&1 &
+    bench=$!
+    collect "$1" $((cores > 1 ? cores - 1 : 1)); echo "$1 data (rc $?) after $(( $(date +%s) - start )) s"
+    wait "$bench"; echo "benchmark (rc $?) after $(( $(date +%s) - start )) s"; cat "$results/bench.md"
+  else
+    collect "$1" "$cores"; echo "$1 data (rc $?) after $(( $(date +%s) - start )) s"
+  fi
+  while [ $# -gt 0 ]; do
+    family=$1; shift
+    [ $# -gt 0 ] && { (renice -n 10 "$BASHPID" > /dev/null; collect "$1" $((cores / 4 > 0 ? cores / 4 : 1))) & }
+    # shellcheck disable=SC2086  # word lists on purpose
+    python3 -m bati.cli experiment main --scale "$scale" --families "$family" --methods $methods --seeds $seeds \
+      --workers "$workers" --data-root "$data" --out-dir "$results" --settings $settings \
+      > "$results/experiment-$family.log" 2>&1
+    echo "$family experiment exit $? after $(( $(date +%s) - start )) s"; tail -2 "$results/experiment-$family.log"
+    wait  # the next family's data
+  done
+  echo "all done after $(( $(date +%s) - start )) s"; touch "$results/session.done"
+}
+
+pack() {
+  local pack
+  pack="$out/results-$(date -u +%Y%m%dT%H%M%S).tar.gz"
+  tar czf "$pack" --exclude=checkpoint.msgpack --exclude='*.lock' --exclude='.*.tmp' -C "$results" .
+  echo "packed $(find "$results" -name eval.json | wc -l) finished run(s) into $pack ($(du -h "$pack" | cut -f1))"
+}
+
+watch_work() {  # until the detached work is done or WATCH_S has passed, leaving time to pack
+  while [ ! -e "$results/session.done" ] && [ $(( $(date +%s) - start )) -lt "$watch" ]; do sleep 5; done
+  cat "$results/session.log"; nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader 2>/dev/null
+  pack
+}
+
+case $mode in
+  start)
+    install
+    [ -e "$results/session.log" ] && { echo "work already started here: use MODE=watch"; exit 2; }
+    export -f work collect; export scale families methods seeds workers settings data results start cores BENCH
+    setsid nohup bash -c work > "$results/session.log" 2>&1 < /dev/null &
+    watch_work;;
+  watch)
+    [ -e "$results/session.log" ] || { echo "no detached work on this machine (a fresh one?): use MODE=start"; exit 2; }
+    watch_work;;
+  fg)
+    install
+    set -m  # the work gets its own process group: the budget stops its worker processes too
+    work > "$results/session.log" 2>&1 &
+    job=$!
+    ( sleep "$budget"; kill -TERM -- -"$job"; sleep 20; kill -KILL -- -"$job" ) >/dev/null 2>&1 </dev/null &
+    watchdog=$!
+    wait "$job"; rc=$?
+    kill -- -"$watchdog" 2>/dev/null  # its sleep too: nothing may outlive the command
+    set +m
+    echo "work exit $rc after $(( $(date +%s) - start )) s (143 or 137: stopped at the budget; run again to resume)"
+    cat "$results/session.log"; pack;;
+  *) echo "MODE must be start, watch or fg, not $mode"; exit 2;;
+esac

@@ -341,7 +341,7 @@ CASES = [
     *(Case(f"train --{opt} {bad}", (lambda o, b: lambda e: [*TRAIN, f"--{o}", b, "--data-root", e.data])(opt, bad), 2,
            (f"{opt.replace('-', '_')} must be",))
       for opt, bad in (("context-length", "0"), ("eval-context-length", "0"), ("task-batch", "0"),
-                       ("batch-size", "0"), ("eval-every", "0"), ("checkpoint-every", "0"), ("log-every", "0"),
+                       ("batch-size", "0"), ("eval-every", "0"), ("checkpoint-every", "0"), ("log-every", "0"), ("eval-workers", "0"),
                        ("episodes-per-task", "0"), ("context-episodes", "0"), ("learning-rate", "0"),
                        ("learning-rate", "nan"), ("iql.learning-rate", "-1"), ("iql.temperature", "inf"))),
     Case("train --method er-trl --ertrl.noise-dim 0", lambda e: [*TRAIN, "--method", "er-trl", "--ertrl.noise-dim",

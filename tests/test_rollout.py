@@ -11,7 +11,7 @@ import pytest
 
 from bati.data.own import OwnFamily
 from bati.envs import get_family
-from bati.envs.rollout import LockstepEnvs, rollout
+from bati.envs.rollout import LockstepEnvs, ProcessLockstepEnvs, lockstep_envs, rollout
 
 # docs/own-data.md's GoalLine (registered as GoalLine-v0 by the example): an env whose episodes terminate
 _spec = importlib.util.spec_from_file_location("own_data_goalline",
@@ -73,3 +73,41 @@ def test_bad_calls_are_refused():
     with pytest.raises(ValueError, match="3 actions for 2 envs"):
         envs.step(np.zeros((3, 2)))
     envs.close()
+
+
+def test_envs_spread_over_processes_play_the_same_episodes_as_one_pool():
+    """ProcessLockstepEnvs: the same numbers as LockstepEnvs whatever the number of workers (the shards are
+    uneven here: 5 envs over 2 processes, then 3 envs over the same 2), with noise, reused across resets."""
+    family = get_family("HopperParam")
+    tasks = family.sample_tasks(5, seed=0)
+    act = lambda seed: _random_policy(seed, 3)  # noqa: E731
+    serial = [rollout(family, tasks, act(0), 1.0, seed=10, length=25),
+              rollout(family, tasks[1:4], act(1), 1.0, seed=[7, 3, 9], length=25)]
+    with lockstep_envs(family, 1.0, workers=2) as envs:
+        assert isinstance(envs, ProcessLockstepEnvs)
+        spread = [rollout(family, tasks, act(0), 1.0, seed=10, length=25, envs=envs),
+                  rollout(family, tasks[1:4], act(1), 1.0, seed=[7, 3, 9], length=25, envs=envs)]
+        assert len(envs) == 3
+    for a, b in zip(serial, spread):
+        for name in ("observations", "actions", "rewards", "next_observations", "noise_free_rewards", "alive"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert isinstance(lockstep_envs(family, None, workers=1), LockstepEnvs)
+
+
+def test_a_process_pool_refuses_bad_calls_and_passes_on_a_worker_error():
+    with pytest.raises(ValueError, match="workers must be an integer >= 1, got 0"):
+        lockstep_envs(get_family("PointGoal"), workers=0)
+    family = get_family("PointGoal")
+    with ProcessLockstepEnvs(family, workers=2) as envs:
+        with pytest.raises(RuntimeError, match="reset"):
+            envs.step(np.zeros((1, 2)))
+        with pytest.raises(ValueError, match="2 reset seeds for 1 tasks"):
+            envs.reset(family.sample_tasks(1, 0), [1, 2])
+        envs.reset(family.sample_tasks(3, 0), [1, 2, 3])
+        with pytest.raises(ValueError, match="2 actions for 3 envs"):
+            envs.step(np.zeros((2, 2)))
+        with pytest.raises(ValueError):  # raised in a worker (a malformed action), raised here
+            envs.step(np.zeros((3, 5, 7)))
+        envs.reset(family.sample_tasks(3, 0), [1, 2, 3])  # the pipes are still in step
+        assert envs.step(np.zeros((3, 2))).observations.shape == (3, 2)
+    assert not envs._processes, "close stops the workers"

@@ -87,6 +87,9 @@ class TrainConfig:
     """Steps between evaluations (default: a tenth of the steps)."""
     checkpoint_every: int | None = None
     """Steps between checkpoints (default: eval_every)."""
+    eval_workers: int = 1
+    """Processes that step the evaluation's MuJoCo envs (1: this one). The same numbers whatever the count;
+    on a GPU machine evaluation is CPU-bound, so give it the spare cores. Not part of the run's identity."""
     log_every: int = 100
     noise: float | None = None
     """The family's eps for data and evaluation (default: the family's)."""
@@ -226,7 +229,7 @@ class TrainConfig:
             raise ValueError(f"unknown method {self.method!r}; choose one of: {', '.join(METHODS)}")
         scale = get_scale(self.scale)
         for setting in ("steps", "task_batch", "batch_size", "context_length", "eval_context_length", "eval_every",
-                        "checkpoint_every", "log_every", "episodes_per_task", "context_episodes"):
+                        "checkpoint_every", "log_every", "episodes_per_task", "context_episodes", "eval_workers"):
             if getattr(self, setting) is not None:  # None: the default; 0 is refused, never the default
                 check_integer(setting, getattr(self, setting))
         for setting in ("seed", "data_seed"):
@@ -413,7 +416,7 @@ RECORD_ONLY = frozenset({"runtime", "family_version", "rl_hidden_dims"})
 
 # --- identity across versions ----------------------------------------------------------------
 # Where a run lives is not what it is: these fields may differ when a run directory is moved or resumed.
-NOT_IDENTITY = ("out_dir", "data_root", "log_to", "zoo_dir")
+NOT_IDENTITY = ("out_dir", "data_root", "log_to", "zoo_dir", "eval_workers")
 # Fields added to TrainConfig after runs were recorded: a saved config without one had this value.
 LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": None, "test_task_range": None,
                 "datasets": [], "task_key": None, "held_out": 0.2, "eval_env": None, "family_version": 1,

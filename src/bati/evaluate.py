@@ -22,7 +22,7 @@ import numpy as np
 
 from bati.data import FamilyData, sample_contexts, sample_off_policy_contexts
 from bati.envs import TaskFamily
-from bati.envs.rollout import LockstepEnvs, rollout
+from bati.envs.rollout import LockstepEnvs, lockstep_envs, rollout
 
 SOURCES = ("p_test", "p_train")
 
@@ -83,8 +83,9 @@ class RunsPolicy:
 
 class Evaluator:
     def __init__(self, method, iql, data: FamilyData, context_length: int, context_mix: float | None = None, *,
-                 family: TaskFamily):
-        """`family`: the TaskFamily the data came from (resolved once by the caller)."""
+                 family: TaskFamily, workers: int = 1):
+        """`family`: the TaskFamily the data came from (resolved once by the caller); `workers`: processes
+        that step the envs (`lockstep_envs`)."""
         self.method, self.iql, self.data = method, iql, data
         self.family = family
         self.context_length = context_length
@@ -98,7 +99,11 @@ class Evaluator:
         train, test = data.train_tasks, data.test_tasks
         self.distances = self.family.distance_matrix(test, train)  # (n_test, n_train)
         self.train_distances = jnp.asarray(self.family.distance_matrix(train, train), jnp.float32)
-        self.envs = LockstepEnvs(self.family, data.noise)  # made at the first evaluation, reused by the next
+        self.envs = lockstep_envs(self.family, data.noise, workers)  # made at the first evaluation, then reused
+
+    def close(self) -> None:
+        """Stop the env pool (its worker processes, if any)."""
+        self.envs.close()
 
     def contexts(self, source: str, key: jax.Array) -> dict:
         """One context of `context_length` transitions per test task from `source` ("p_test",
@@ -251,6 +256,10 @@ class OfflineEvaluator:
         self.envs = None if env_family is None else LockstepEnvs(env_family)
         self.episode_length = episode_length
         self.policy = RunsPolicy(trainer.method, trainer.iql)
+
+    def close(self) -> None:
+        if self.envs is not None:
+            self.envs.close()
 
     def _contexts(self, data, key, ids):
         contexts = sample_contexts(data, key, ids, self.context_length)

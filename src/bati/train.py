@@ -206,7 +206,8 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool, references: 
         for c in configs:  # the data a run started on is the data it resumes on
             _check_datasets_unchanged(Path(c.out_dir), data.manifest["fingerprint"])
     else:
-        evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length, family=inputs.family)
+        evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length, family=inputs.family,
+                              workers=config.eval_workers)
     runs = [_SeedRun.open(c, trainer) for c in configs]
     start = time.perf_counter()
     progress = Progress(
@@ -222,6 +223,7 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool, references: 
                 until = min([r.step for r in runs if r.step > behind] + [config.steps])
                 _advance(trainer, evaluator, data, group, until, start, progress, bar)
         finally:
+            evaluator.close()
             for run in runs:
                 for sink in run.sinks:
                     sink.close()

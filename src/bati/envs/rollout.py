@@ -7,15 +7,24 @@ an episode depends only on its task, its reset seed, the noise and the actions, 
 the pool played it (a family whose env cannot `set_task` gets a fresh env per episode). An env whose
 episode ends (terminated or truncated) stops: it is not stepped again until the next reset, its reward
 is 0 and its observation stays the last one (`alive` says which steps were played).
+
+`lockstep_envs(family, noise, workers)` gives the same pool spread over worker processes
+(`ProcessLockstepEnvs`): env i of N lives in one of `workers` spawned processes, each stepping its
+contiguous share of the N envs with its own `LockstepEnvs`. Since an episode depends only on its task,
+reset seed, noise and actions, the numbers are the same whatever the number of workers; only the wall
+time changes (MuJoCo stepping is what evaluation spends its time on: docs/performance.md).
 """
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
+from bati.checks import check_integer
 from bati.envs.base import Task, TaskFamily
 
 # act(observations (N, obs_dim), step) -> actions (N, act_dim)
@@ -95,6 +104,119 @@ class LockstepEnvs:
         return self._pool[i]
 
 
+def lockstep_envs(family: TaskFamily, noise: float | None = None, workers: int = 1):
+    """A lockstep pool of `family`'s envs: in this process (workers = 1) or over `workers` processes."""
+    check_integer("workers", workers)
+    return LockstepEnvs(family, noise) if workers == 1 else ProcessLockstepEnvs(family, noise, workers)
+
+
+class ProcessLockstepEnvs:
+    """`LockstepEnvs` over `workers` spawned processes (see the module): same interface, same numbers.
+
+    The processes start at the first reset and live until `close` (or this process's exit: they are
+    daemonic, and each also stops when its pipe closes). `family` must be picklable (every registered
+    family is)."""
+
+    def __init__(self, family: TaskFamily, noise: float | None = None, workers: int = 2):
+        self.family, self.noise = family, noise
+        self.workers = check_integer("workers", workers)
+        self._processes: list = []
+        self._pipes: list = []
+        self._shards: list[slice] = []
+
+    def __len__(self) -> int:
+        return self._shards[-1].stop if self._shards else 0
+
+    def reset(self, tasks: Sequence[Task], seeds: Sequence[int]) -> np.ndarray:
+        if len(seeds) != len(tasks):
+            raise ValueError(f"{len(seeds)} reset seeds for {len(tasks)} tasks")
+        self._start()
+        bounds = np.linspace(0, len(tasks), min(self.workers, len(tasks)) + 1).astype(int)
+        self._shards = [slice(int(a), int(b)) for a, b in zip(bounds, bounds[1:])]
+        tasks, seeds = list(tasks), [int(s) for s in seeds]
+        for pipe, shard in zip(self._pipes, self._shards):
+            pipe.send(("reset", (tasks[shard], seeds[shard])))
+        return np.concatenate(self._receive())
+
+    def step(self, actions: np.ndarray) -> Step:
+        if not self._shards:
+            raise RuntimeError("reset the envs before stepping them")
+        if len(actions) != len(self):
+            raise ValueError(f"{len(actions)} actions for {len(self)} envs")
+        actions = np.asarray(actions)
+        for pipe, shard in zip(self._pipes, self._shards):
+            pipe.send(("step", actions[shard]))
+        steps = self._receive()
+        return Step(*(np.concatenate([getattr(s, f.name) for s in steps]) for f in fields(Step)))
+
+    def close(self) -> None:
+        for pipe in self._pipes:
+            try:
+                pipe.send(("close", None))
+                pipe.close()
+            except OSError:  # the worker is gone already
+                pass
+        for process in self._processes:
+            process.join(timeout=10)
+            if process.is_alive():
+                process.terminate()
+        self._processes, self._pipes, self._shards = [], [], []
+
+    def __enter__(self) -> ProcessLockstepEnvs:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _start(self) -> None:
+        if self._processes:
+            return
+        context = multiprocessing.get_context("spawn")  # JAX (in this process) is not fork-safe
+        for _ in range(self.workers):
+            parent, child = context.Pipe()
+            process = context.Process(target=_serve_envs, args=(child, self.family, self.noise), daemon=True)
+            process.start()
+            child.close()
+            self._processes.append(process)
+            self._pipes.append(parent)
+
+    def _receive(self) -> list:
+        """Every worker's answer (all of them read first, so that the pipes stay in step), or the first error."""
+        answers = []
+        for pipe in self._pipes[:len(self._shards)]:
+            try:
+                answers.append(pipe.recv())
+            except EOFError:
+                self.close()
+                raise RuntimeError("an env worker process died (out of memory?); the pool is closed") from None
+        for ok, answer in answers:
+            if not ok:
+                raise answer
+        return [answer for _, answer in answers]
+
+
+def _serve_envs(pipe, family: TaskFamily, noise: float | None) -> None:
+    """A worker of ProcessLockstepEnvs: one thread, no accelerator; answers (ok, result) per message."""
+    os.environ.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", JAX_PLATFORMS="cpu")
+    envs = LockstepEnvs(family, noise)
+    try:
+        while True:
+            try:
+                command, argument = pipe.recv()
+            except (EOFError, KeyboardInterrupt):
+                return
+            if command == "close":
+                return
+            try:
+                answer = envs.reset(*argument) if command == "reset" else envs.step(argument)
+            except Exception as error:  # noqa: BLE001  (the caller raises it)
+                pipe.send((False, error))
+            else:
+                pipe.send((True, answer))
+    finally:
+        envs.close()
+
+
 @dataclass
 class Episodes:
     """N episodes stepped in lockstep for T steps (arrays are (N, T, ...))."""
@@ -129,7 +251,7 @@ def rollout(
     seed: int | Sequence[int],
     length: int | None = None,
     *,
-    envs: LockstepEnvs | None = None,
+    envs: LockstepEnvs | ProcessLockstepEnvs | None = None,
     on_step: StepHook | None = None,
 ) -> Episodes:
     """Roll out `act` for one episode (`length` steps, default: the family's episode length) in each task.
