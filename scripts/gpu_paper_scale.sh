@@ -46,6 +46,9 @@ install() {
   fi
   export PYTHONPATH=$PWD/src${PYTHONPATH:+:$PYTHONPATH} MUJOCO_GL=${MUJOCO_GL:-glfw} \
     XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
+  # everything the work imports, checked in seconds rather than found missing minutes later
+  python3 -c "import mujoco, gymnasium, minari, tyro, bati.cli; from bati.report.stats import require_rliable
+require_rliable()" || { echo "the machine lacks a package the work needs (above): add its wheel in gpu_wheels.sh"; exit 2; }
 }
 
 collect() {  # $1 family, $2 workers
@@ -72,7 +75,8 @@ work() {  # the session's work: benchmark, then family after family
     python3 -m bati.cli experiment main --scale "$scale" --families "$family" --methods $methods --seeds $seeds \
       --workers "$workers" --data-root "$data" --out-dir "$results" --settings $settings \
       > "$results/experiment-$family.log" 2>&1
-    echo "$family experiment exit $? after $(( $(date +%s) - start )) s"; tail -2 "$results/experiment-$family.log"
+    rc=$?; echo "$family experiment exit $rc after $(( $(date +%s) - start )) s"; tail -2 "$results/experiment-$family.log"
+    [ $rc -eq 2 ] && { echo "bad input: the other families would fail alike; stopping"; break; }
     wait  # the next family's data
   done
   echo "all done after $(( $(date +%s) - start )) s"; touch "$results/session.done"
