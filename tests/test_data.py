@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -319,6 +320,19 @@ def test_reproducible_from_the_seed(tiny_seed0, tmp_path):
         assert np.array_equal(load["a"][key], load["b"][key]), key
     assert not np.array_equal(load["a"]["train.actions"], load["c"]["train.actions"])
     assert a.manifest["train_tasks"] == b.manifest["train_tasks"] != c.manifest["train_tasks"]
+
+
+def test_the_data_fingerprint_follows_the_numbers_not_the_files(tiny_seed0, tmp_path):
+    """FamilyData.fingerprint: equal for the same collection read twice (from the Minari files and from the
+    array cache), different for another seed's data and for one changed reward."""
+    root = tiny_seed0.path.parents[1]
+    read = load_family_data(FAMILY, "quick", 0, root=root, cache=False)
+    cached = load_family_data(FAMILY, "quick", 0, root=root)
+    assert read.fingerprint() == cached.fingerprint() and len(read.fingerprint()) == 16
+    other_seed = load_family_data(FAMILY, "quick", 1, root=tiny(tmp_path / "c", seed=1).path.parents[1])
+    assert other_seed.fingerprint() != read.fingerprint()
+    edited = dataclasses.replace(read, p_train=read.p_train.replace(rewards=read.p_train.rewards.at[0, 0].add(1e-3)))
+    assert edited.fingerprint() != read.fingerprint()
 
 
 def test_noise_override(tmp_path):

@@ -397,6 +397,12 @@ def test_runs_with_different_references_say_so_and_keep_their_own_normalisation(
     assert row(table(report, "PointGoal"), "recon")["p_test_normalised_mean"] == pytest.approx(100.0 / 300.0)
     (other / "eval.json").write_text(json.dumps({**summary, "reference_returns": {"random": RANDOM, "expert": EXPERT}}))
     assert "differ" not in table(build_report(tmp_path, reps=50), "PointGoal")["markdown"]
+    # the same references but other numbers in the data (eval.json's data.fingerprint): said too
+    for run, fingerprint in ((other, "0123456789abcdef"), (tmp_path / "PointGoal" / "bati-seed0", "fedcba9876543210")):
+        summary = json.loads((run / "eval.json").read_text())
+        (run / "eval.json").write_text(json.dumps({**summary, "data": {"fingerprint": fingerprint}}))
+    assert "the runs' own differ: 2 different data fingerprints" in table(build_report(tmp_path, reps=50),
+                                                                          "PointGoal")["markdown"]
 
 
 def test_the_device_names_the_cpu_model(tmp_path):

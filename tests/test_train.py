@@ -323,6 +323,7 @@ def test_run_results_record_the_device_and_references(tmp_path, point_data):
     references = summary["reference_returns"]
     assert references["expert"] > references["random"]  # the PointGoal expert reaches its goals
     assert "device" in json.loads((tmp_path / "run" / "config.json").read_text())["runtime"]
+    assert summary["data"]["fingerprint"] == point_data.fingerprint()  # the numbers it trained on
 
 
 def test_no_context_trains_iql_without_a_latent(tmp_path, point_data):

@@ -231,11 +231,13 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool, references: 
         references = reference_returns(data, family=inputs.family, expert=inputs.expert)
     session = {"device": describe_device(), "jax_version": jax.__version__, "commit": git_commit(),
                "wall_time_s": round(time.perf_counter() - start, 2)}
+    recorded = {k: data.manifest[k] for k in ("n_episodes", "n_context_episodes", "transitions", "transitions_read",
+                                              "tasks") if k in data.manifest}
+    if not config.datasets:  # own data is fingerprinted by its files (data.manifest["fingerprint"])
+        recorded["fingerprint"] = data.fingerprint()
     summaries = []
     for run in runs:
-        summary = {**summarize_run(run.out), "reference_returns": references, **session,
-                   "data": {k: data.manifest.get(k) for k in ("n_episodes", "n_context_episodes", "transitions",
-                                                                "transitions_read", "tasks") if k in data.manifest}}
+        summary = {**summarize_run(run.out), "reference_returns": references, **session, "data": recorded}
         atomic_write_json(run.out / "eval.json", summary)
         summaries.append(summary)
     return summaries

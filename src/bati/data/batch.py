@@ -13,6 +13,7 @@ of episode e of task k.
 from __future__ import annotations
 
 import functools
+import hashlib
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -80,6 +81,18 @@ class FamilyData:
     task_dim: int
     path: Path | None = None  # the collection directory
     manifest: dict = field(default_factory=dict)
+
+    def fingerprint(self) -> str:
+        """sha256 (16 hex digits) of the transitions a run trains and is evaluated on: the training data and
+        both context sources, field by field. Two runs with the same fingerprint saw the same numbers; the same
+        collection command gives other numbers on another CPU model (docs/reliability.md), and this says so."""
+        digest = hashlib.sha256()
+        for split in (self.train, self.p_test, self.p_train):
+            for name in TRANSITION_FIELDS:
+                value = np.ascontiguousarray(jax.device_get(getattr(split, name)))
+                digest.update(f"{name}{value.shape}{value.dtype}".encode())
+                digest.update(value.tobytes())
+        return digest.hexdigest()[:16]
 
 
 # --- samplers ----------------------------------------------------------------------------------

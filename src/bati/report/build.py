@@ -214,6 +214,9 @@ def _reference_spread(group: Group, digits: int) -> str:
     spread = {k: (min(ref[k] for ref in refs), max(ref[k] for ref in refs)) for k in ("random", "expert")}
     differing = [f"{name} {low:.{digits}f} to {high:.{digits}f}" for name, (low, high) in spread.items()
                  if f"{low:.{digits}f}" != f"{high:.{digits}f}"]
+    fingerprints = {r.data["fingerprint"] for r in group.runs if r.data and r.data.get("fingerprint")}
+    if len(fingerprints) > 1:  # runs recorded since fingerprints exist (eval.json's data.fingerprint)
+        differing.append(f"{len(fingerprints)} different data fingerprints")
     if not differing:
         return ""
     return (f" (means over runs; the runs' own differ: {', '.join(differing)}, so their data came from different "
