@@ -16,13 +16,38 @@
 # ablation (C4), then phase 2: the others (ER-TRL, BATI-auto, DPT) on every family.
 # After a job: `bati experiment main --scale cpu --report-only --out-dir results/cpu/experiments --data-root DATA`
 # and `bati claims` regenerate the report and docs/claims.md; commit the cells (checkpoints are git-ignored).
+# STOP_AT (epoch seconds, e.g. STOP_AT=$(date -d '+170 min' +%s)): the session's end. A seed or a collection whose
+# estimate (minutes below: measured on this project's 2-core machines with other work beside, docs/performance.md)
+# would not finish by then is skipped, and the queue goes on to the next that fits: a job cut by the end of a
+# session is lost with its machine. The skipped ones come first again in the next session (finished cells are
+# skipped in seconds).
 set -u
+stop_at=${STOP_AT:-}
+minutes() {  # a seed's (or, "collect", a family's paper data) estimated minutes
+  case $1 in
+    oracle|no-context) echo 35;; focal|unicorn) echo 45;; bati|bati-r|bati-auto|recon|dpt) echo 65;;
+    csro|er-trl) echo 100;; collect) echo 40;; *) echo 100;;
+  esac
+}
+fits() {  # $1: what (a method, or collect); true when it would finish before STOP_AT
+  [ -z "$stop_at" ] && return 0
+  [ $(( $(date +%s) + 60 * $(minutes "$1") )) -le "$stop_at" ] && return 0
+  echo "=== skipped: $1 ($(minutes "$1") min) would not finish before STOP_AT $(date -u -d "@$stop_at") $(date -u)"
+  return 1
+}
+collect() {  # $1 family, the rest: more options
+  local family=$1; shift
+  python -m bati.cli data info --family "$family" --scale paper --root "$data_root" "$@" > /dev/null 2>&1 && return 0
+  fits collect || return 1
+  python -m bati.cli data collect --family "$family" --scale paper --workers 2 --root "$data_root" "$@" || exit 1
+}
 data_root=${1:-data}
 out_dir=${2:-$(pwd)/results/cpu/experiments}
 seeds=${SEEDS:-"0 1 2"}
 job() {  # $1 experiment, $2 family, $3 method, the rest: more options; one seed at a time
   local experiment=$1 family=$2 method=$3; shift 3
   for seed in $seeds; do
+    fits "$method" || continue
     echo "=== $family $method seed $seed ($experiment $*) $(date -u)"
     python -m bati.cli experiment "$experiment" --scale cpu --families "$family" --methods "$method" --seeds "$seed" \
       --data-root "$data_root" --workers 1 "$@"
@@ -44,26 +69,26 @@ for job in $interrupted; do
   IFS=: read -r experiment family method <<< "$job"
   job "$experiment" "$family" "$method" --out-dir "$out_dir"
 done
-python -m bati.cli data collect --family AntDir --scale paper --workers 2 --root "$data_root" || exit 1
-for method in csro er-trl; do job main AntDir "$method" --out-dir "$out_dir"; done
+if collect AntDir; then
+  for method in csro er-trl; do job main AntDir "$method" --out-dir "$out_dir"; done
+fi
 # FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the
 # baselines' fall on p_test? Its own output directory, so the main table's report is not touched.
-if [ -z "${SKIP_ABLATIONS:-}" ]; then
+if [ -z "${SKIP_ABLATIONS:-}" ] && [ -d "$data_root/AntDir" ]; then
   job main AntDir focal --settings focal.distance=root-mean --out-dir "$(dirname "$out_dir")/focal-distance"
 fi
 main_phase() {  # $1: the methods, each on every family
   for family in $families; do
-    python -m bati.cli data collect --family "$family" --scale paper --workers 2 --root "$data_root" || exit 1
+    collect "$family" || continue
     for method in $1; do job main "$family" "$method" --out-dir "$out_dir"; done
   done
 }
 main_phase "$phase1"
 # Claim C4 (noise hurts the baselines, not BATI): the AntDir noise ablation, eps 0 and 0.5 (eps 1's cells are the
 # main table's); ER-TRL's part of it last (issue 28).
-for noise in 0 0.5; do
-  python -m bati.cli data collect --family AntDir --scale paper --noise "$noise" --workers 2 --root "$data_root" || exit 1
-done
-for method in ${NOISE_METHODS:-"bati bati-r focal csro unicorn recon er-trl"}; do
-  job noise AntDir "$method" --out-dir "$out_dir"
-done
+if collect AntDir --noise 0 && collect AntDir --noise 0.5; then
+  for method in ${NOISE_METHODS:-"bati bati-r focal csro unicorn recon er-trl"}; do
+    job noise AntDir "$method" --out-dir "$out_dir"
+  done
+fi
 main_phase "$phase2"
