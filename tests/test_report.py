@@ -13,6 +13,7 @@ import pytest
 from bati.cli import main
 from bati.report import ReportWarning, build_report, load_runs
 from bati.report.build import CSV_COLUMNS, method_order
+from bati.report.runs import jobs_wall_time
 from bati.report.stats import improvement_interval, iqm, iqm_interval, probability_of_improvement
 
 RANDOM, EXPERT = -500.0, -250.0
@@ -411,5 +412,17 @@ def test_the_device_names_the_cpu_model(tmp_path):
     info = tmp_path / "cpuinfo"
     info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC   7B13\nflags\t: fpu\n")
     assert cpu_model(info) == "AMD EPYC 7B13"
+    info.write_text("model name\t: AMD EPYC\nflags\t: fpu avx avx2 fma avx512f avx512ifma\n")
+    assert cpu_model(info) == "AMD EPYC, AVX-512"  # XLA's kernels follow the vector width
+    info.write_text("model name\t: AMD EPYC\nflags\t: fpu avx avx2 fma\n")
+    assert cpu_model(info) == "AMD EPYC, AVX2"
     info.write_text("processor\t: 0\n")
     assert cpu_model(info) == "CPU" and cpu_model(tmp_path / "missing") == "CPU"
+
+
+def test_wall_time_counts_a_vmapped_job_once_and_one_seed_jobs_each():
+    """Seeds trained in one vmapped job record the job's time (counted once); seeds of the same setting trained
+    one per job (the cpu queue) record their own times (each counted)."""
+    vmapped = [(("AntDir/cpu", "bati"), 1200.0)] * 3
+    one_per_job = [(("AntDir/cpu", "csro"), 5796.0), (("AntDir/cpu", "csro"), 3501.9)]
+    assert jobs_wall_time(vmapped + one_per_job) == pytest.approx(1200.0 + 5796.0 + 3501.9)

@@ -384,14 +384,18 @@ def describe_device() -> str:
 
 
 def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
-    """The CPU's model name from /proc/cpuinfo ("CPU" where there is none, e.g. not on Linux)."""
+    """The CPU's model name from /proc/cpuinfo, with its widest vector instructions where the flags name them
+    (e.g. "AMD EPYC, AVX-512"): XLA picks its CPU kernels by them, and two machines that both call themselves
+    "AMD EPYC" gave different AntDir data for the same seed, one with AVX-512 and one without (docs/reliability.md).
+    "CPU" where there is no model name (e.g. not on Linux)."""
     try:
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name") and ":" in line:
-                return " ".join(line.split(":", 1)[1].split()) or "CPU"
+        lines = cpuinfo.read_text().splitlines()
     except OSError:
-        pass
-    return "CPU"
+        return "CPU"
+    field = lambda key: next((line.split(":", 1)[1] for line in lines if line.startswith(key) and ":" in line), "")  # noqa: E731
+    model, flags = " ".join(field("model name").split()) or "CPU", set(field("flags").split())
+    vector = "AVX-512" if "avx512f" in flags else "AVX2" if "avx2" in flags else "AVX" if "avx" in flags else ""
+    return f"{model}, {vector}" if vector and model != "CPU" else model
 
 
 def summarize_run(out: Path, last: int = 5) -> dict:

@@ -184,12 +184,10 @@ def earlier_sessions_time(run_dir: Path) -> float:
 
 
 def jobs_wall_time(times) -> float:
-    """Seconds of the jobs behind (job, seconds) pairs, each job counted once: the seeds of one setting and
-    method train as one vmapped job and each records its time."""
-    jobs: dict = {}
-    for job, seconds in times:
-        jobs[job] = max(jobs.get(job, 0.0), seconds)
-    return float(sum(jobs.values()))
+    """Seconds of the jobs behind (job, seconds) pairs, each job counted once: seeds trained as one vmapped
+    job each record the job's time. A job is its key (a setting and method) and its time: seeds of one setting
+    trained one per job (the cpu queue) record different times and count each (seconds rounded to 0.1 s)."""
+    return float(sum({(job, round(seconds, 1)): seconds for job, seconds in times}.values()))
 
 
 def find_eval_files(directory: Path) -> list[Path]:
