@@ -26,7 +26,7 @@ from bati.checks import check_integer
 from bati.data import store
 from bati.data.plan import OTHER_FRACTION, PLAN_STREAM, DatasetPlan, Plan, make_plan
 from bati.envs import FAMILY_NAMES, TaskFamily, TaskSplit, as_family, get_family
-from bati.envs.rollout import LockstepEnvs
+from bati.envs.rollout import ONE_THREAD_ENV, LockstepEnvs
 from bati.io import atomic_write_json, check_directory, git_commit, hold_lock
 
 # Episodes per training task and per context dataset. `paper`: the family's own size
@@ -339,9 +339,7 @@ def _rollout_chunk(family: TaskFamily, expert, noise: float, seed: int, chunk: _
 
 # --- worker processes (spawned: JAX is not fork-safe) -------------------------------------------
 _WORKER_THREAD_ENV = {
-    "OMP_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "OPENBLAS_NUM_THREADS": "1",
+    **ONE_THREAD_ENV,
     "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
 }
 _WORKER: dict[str, Any] = {}

@@ -27,6 +27,9 @@ import numpy as np
 from bati.checks import check_integer
 from bati.envs.base import Task, TaskFamily
 
+# What a worker process that steps envs sets first, so that N workers use N cores (collection's workers too).
+ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+
 # act(observations (N, obs_dim), step) -> actions (N, act_dim)
 ActFn = Callable[[np.ndarray, int], np.ndarray]
 
@@ -197,7 +200,7 @@ class ProcessLockstepEnvs:
 
 def _serve_envs(pipe, family: TaskFamily, noise: float | None) -> None:
     """A worker of ProcessLockstepEnvs: one thread, no accelerator; answers (ok, result) per message."""
-    os.environ.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", JAX_PLATFORMS="cpu")
+    os.environ.update(ONE_THREAD_ENV, JAX_PLATFORMS="cpu")
     envs = LockstepEnvs(family, noise)
     try:
         while True:
