@@ -4,8 +4,8 @@
 #       > cpu-queue.log 2>&1 &   (PYTHONPATH: this checkout's code, not the editable install's)
 # Each line is a resumable `bati experiment`: finished cells are skipped (in seconds), an interrupted job resumes
 # from its checkpoints (a run checkpoints at least every 10 minutes) when the machine still holds them. Every job
-# trains one seed: a work session lasts 3 hours on a fresh machine (checkpoints are git-ignored and do not outlive
-# it), so a job must finish inside one; on 2 cores one seed at a time is also no slower than three vmapped seeds
+# trains one seed: a work session lasts 3 hours, often on a fresh machine (checkpoints are git-ignored; when the
+# machine does outlive a session, phase 0 below resumes its cut job), so a job should finish inside one; on 2 cores one seed at a time is also no slower than three vmapped seeds
 # (AntDir ER-TRL at the cpu scale: 40.0 ms per step for one seed, 135.6 ms for three; docs/performance.md). Run it from an archive of a fixed commit
 # (git worktree add ../bg-<commit> <commit>) so that the code does not change under a running job; results go into
 # this checkout's results/cpu/experiments.
