@@ -11,9 +11,11 @@
 # this checkout's results/cpu/experiments.
 # Order: claims first. A seed costs 20-80 min on this project's 2-core machine (IQL alone ~20 min; CSRO and ER-TRL
 # ~1-1.3 h, Recon and BATI-R ~45 min, with other work on the cores), so the table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL
-# (issue 28), the FOCAL distance ablation, then phase 1: family by family, the methods that the claims C1-C3 compare
-# (BATI, its reward-only variant, the paper's baselines, the Oracle and the no-context floor), then the AntDir noise
-# ablation (C4), then phase 2: the others (ER-TRL, BATI-auto, DPT) on every family.
+# (issue 28), the AntDir noise ablation's BATI, FOCAL and ER-TRL (claim C4, untested at every scale), then phase 1:
+# family by family, the methods that the claims C1-C3 compare (BATI, its reward-only variant, the paper's baselines,
+# the Oracle and the no-context floor), then the noise ablation's other methods, the FOCAL distance ablation, then
+# phase 2: the others (ER-TRL, BATI-auto, DPT) on every family. WAIT_PID: a running job's process to wait for first
+# (a queue restarted with a new order beside a job of the old one).
 # After a job: `bati experiment main --scale cpu --report-only --out-dir results/cpu/experiments --data-root DATA`
 # and `bati claims` regenerate the report and docs/claims.md; commit the cells (checkpoints are git-ignored).
 # STOP_AT (epoch seconds, e.g. STOP_AT=$(date -d '+170 min' +%s)): the session's end. A seed or a collection whose
@@ -22,6 +24,7 @@
 # session is lost with its machine. The skipped ones come first again in the next session (finished cells are
 # skipped in seconds).
 set -u
+while [ -n "${WAIT_PID:-}" ] && kill -0 "$WAIT_PID" 2> /dev/null; do sleep 20; done
 stop_at=${STOP_AT:-}
 minutes() {  # a seed's (or, "collect", a family's paper data) estimated minutes
   case $1 in
@@ -29,10 +32,11 @@ minutes() {  # a seed's (or, "collect", a family's paper data) estimated minutes
     csro|er-trl) echo 100;; collect) echo 40;; *) echo 100;;
   esac
 }
-fits() {  # $1: what (a method, or collect); true when it would finish before STOP_AT
+fits() {  # $1: what (a method, or collect), $2: how many cells (default 1); true when they would finish before STOP_AT
   [ -z "$stop_at" ] && return 0
-  [ $(( $(date +%s) + 60 * $(minutes "$1") )) -le "$stop_at" ] && return 0
-  echo "=== skipped: $1 ($(minutes "$1") min) would not finish before STOP_AT $(date -u -d "@$stop_at") $(date -u)"
+  local need=$(( ${2:-1} * $(minutes "$1") ))
+  [ $(( $(date +%s) + 60 * need )) -le "$stop_at" ] && return 0
+  echo "=== skipped: $1 ($need min) would not finish before STOP_AT $(date -u -d "@$stop_at") $(date -u)"
   return 1
 }
 collect() {  # $1 family, the rest: more options
@@ -46,8 +50,9 @@ out_dir=${2:-$(pwd)/results/cpu/experiments}
 seeds=${SEEDS:-"0 1 2"}
 job() {  # $1 experiment, $2 family, $3 method, the rest: more options; one seed at a time
   local experiment=$1 family=$2 method=$3; shift 3
+  local cells=1; [ "$experiment" = noise ] && cells=2  # a noise seed trains eps 0 and eps / 2 (eps's are main's)
   for seed in $seeds; do
-    fits "$method" || continue
+    fits "$method" "$cells" || continue
     echo "=== $family $method seed $seed ($experiment $*) $(date -u)"
     python -m bati.cli experiment "$experiment" --scale cpu --families "$family" --methods "$method" --seeds "$seed" \
       --data-root "$data_root" --workers 1 "$@"
@@ -72,23 +77,25 @@ done
 if collect AntDir; then
   for method in csro er-trl; do job main AntDir "$method" --out-dir "$out_dir"; done
 fi
-# FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the
-# baselines' fall on p_test? Its own output directory, so the main table's report is not touched.
-if [ -z "${SKIP_ABLATIONS:-}" ] && [ -d "$data_root/AntDir" ]; then
-  job main AntDir focal --settings focal.distance=root-mean --out-dir "$(dirname "$out_dir")/focal-distance"
-fi
+noise() {  # $@: the methods of the AntDir noise ablation to run (eps 0 and 0.5; eps 1's cells are the main table's)
+  collect AntDir --noise 0 && collect AntDir --noise 0.5 || return
+  for method in "$@"; do job noise AntDir "$method" --out-dir "$out_dir"; done
+}
 main_phase() {  # $1: the methods, each on every family
   for family in $families; do
     collect "$family" || continue
     for method in $1; do job main "$family" "$method" --out-dir "$out_dir"; done
   done
 }
+# Claim C4 (noise hurts the baselines, not BATI) is untested at every scale: the AntDir noise ablation's claim pair
+# (BATI and FOCAL, the baseline whose fall on p_test is decided on AntDir) and ER-TRL's part (issue 28) come before
+# the other families, the rest of the ablation's methods after them.
+noise ${NOISE_FIRST:-bati focal er-trl}
 main_phase "$phase1"
-# Claim C4 (noise hurts the baselines, not BATI): the AntDir noise ablation, eps 0 and 0.5 (eps 1's cells are the
-# main table's); ER-TRL's part of it last (issue 28).
-if collect AntDir --noise 0 && collect AntDir --noise 0.5; then
-  for method in ${NOISE_METHODS:-"bati bati-r focal csro unicorn recon er-trl"}; do
-    job noise AntDir "$method" --out-dir "$out_dir"
-  done
+noise ${NOISE_REST:-bati-r csro unicorn recon}
+# FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the
+# baselines' fall on p_test? Its own output directory, so the main table's report is not touched.
+if [ -z "${SKIP_ABLATIONS:-}" ] && [ -d "$data_root/AntDir" ]; then
+  job main AntDir focal --settings focal.distance=root-mean --out-dir "$(dirname "$out_dir")/focal-distance"
 fi
 main_phase "$phase2"
