@@ -82,6 +82,13 @@ work() {  # the session's work: benchmark, then family after family
   echo "all done after $(( $(date +%s) - start )) s"; touch "$results/session.done"
 }
 
+seed_results() {  # the committed cells of this scale count as finished here too: the sweep skips them
+  local committed=${COMMITTED:-results/$scale/experiments}
+  [ -d "$committed" ] || return 0
+  cp -a "$committed/." "$results/"
+  echo "$(find "$committed" -name eval.json | wc -l) committed run(s) of $committed count as finished"
+}
+
 pack() {
   local pack
   pack="$out/results-$(date -u +%Y%m%dT%H%M%S).tar.gz"
@@ -99,6 +106,7 @@ case $mode in
   start)
     install
     [ -e "$results/session.log" ] && { echo "work already started here: use MODE=watch"; exit 2; }
+    seed_results
     export -f work collect; export scale families methods seeds workers settings data results start cores BENCH
     setsid nohup bash -c work > "$results/session.log" 2>&1 < /dev/null &
     watch_work;;
@@ -107,6 +115,7 @@ case $mode in
     watch_work;;
   fg)
     install
+    seed_results
     set -m  # the work gets its own process group: the budget stops its worker processes too
     work > "$results/session.log" 2>&1 &
     job=$!
