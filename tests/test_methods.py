@@ -541,3 +541,26 @@ def test_er_trl_entropy_term_reaches_the_encoder_only():
                                small[name], large[name])
     leaves = zip(jax.tree_util.tree_leaves(small["encoder"]), jax.tree_util.tree_leaves(large["encoder"]))
     assert any(not np.allclose(a, b) for a, b in leaves)
+
+
+def test_er_trl_weights_focal_term_as_the_code_and_reads_old_runs_as_weight_one():
+    from bati.config import upgrade_record
+    from bati.methods.er_trl import ERTRLConfig
+
+    batch, key = _baseline_batch(), jax.random.PRNGKey(1)
+
+    def loss_and_metric(metric_weight):
+        method = make_method("er-trl", SPEC, ERTRLConfig(entropy_weight=5.0, metric_weight=metric_weight))
+        loss, (_, logs) = method.loss(method.init(jax.random.PRNGKey(0)), batch, key)
+        return float(loss), float(logs["metric_loss"])
+
+    (ten, metric), (one, _) = loss_and_metric(10.0), loss_and_metric(1.0)
+    assert ten - one == pytest.approx(9.0 * metric, rel=1e-4)  # the same networks: only w L_FOCAL moves
+    assert ERTRLConfig().metric_weight == 10.0  # the code's z_loss_weight
+    with pytest.raises(ValueError, match="ertrl.metric_weight must be a finite number >= 0"):
+        ERTRLConfig(metric_weight=-1.0).check()
+    config = TrainConfig(family="AntDir", method="er-trl").resolved()
+    old = json.loads(json.dumps(config.record()))
+    old["ertrl"].pop("metric_weight")  # recorded before the setting existed: FOCAL's term at weight 1
+    assert upgrade_record(old)["ertrl"] == {**config.record()["ertrl"], "metric_weight": 1.0}
+    assert TrainConfig.from_record(old).ertrl.metric_weight == 1.0

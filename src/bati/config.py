@@ -434,7 +434,8 @@ def upgrade_record(record: dict) -> dict:
     """A config.json written by an older version, in today's field names. Before the per-method
     sections existed: IQL's temperature was called `beta`, and its hidden sizes were also recorded
     as `rl_hidden_dims` (the same value, copied into iql.hidden_dims). CSRO runs recorded before
-    `csro.club_negatives` existed drew CLUB's negatives from any task (its default is now "same-task")."""
+    `csro.club_negatives` existed drew CLUB's negatives from any task (its default is now "same-task"); ER-TRL
+    runs recorded before `ertrl.metric_weight` existed weighted FOCAL's term 1 (its default is now the code's 10)."""
     record = dict(record)
     iql = record.get("iql")
     if isinstance(iql, dict) and "beta" in iql:
@@ -444,6 +445,9 @@ def upgrade_record(record: dict) -> dict:
     if record.get("method") == "csro" and "club_negatives" not in (record.get("csro") or {}):
         section = record.get("csro") or default_method_record(record.get("family"), "csro")
         record["csro"] = {**section, "club_negatives": "any-task"}
+    if record.get("method") == "er-trl" and "metric_weight" not in (record.get("ertrl") or {}):
+        section = record.get("ertrl") or default_method_record(record.get("family"), "er-trl")
+        record["ertrl"] = {**section, "metric_weight": 1.0}
     for name, cls in method_sections().items():
         section = record.get(name)
         if isinstance(section, dict):

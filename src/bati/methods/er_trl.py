@@ -9,13 +9,13 @@ maximise the entropy of pi_beta(. | s, z), estimated adversarially:
 - for each batch task t, the generator's actions at that task's B states under its latent z_t are
   fitted with a Gaussian; its entropy H_t = 1/2 log det(2 pi e Sigma_t) is what the encoder raises,
   through z_t only (the generator frozen).
-Loss = L_FOCAL - lambda * mean_t H_t + L_D + L_G, each part reaching only its own networks (stop_gradient
+Loss = w L_FOCAL - lambda * mean_t H_t + L_D + L_G (w = 10, the code's z_loss_weight), each part reaching only its own networks (stop_gradient
 keeps the adversarial game apart, as CSRO's CLUB), one optimiser step per training step.
 
 Our choices (docs/methods.md): IQL instead of BRAC as the offline RL core (as every method here); one
 GAN update per step instead of the code's five, on the method's Adam (learning_rate 3e-4) instead of
-2e-4; lambda per family from the code's `mir_loss_weight` (FamilyRecord.entropy_weight); FOCAL's term at
-weight 1 with our FOCAL's settings.
+2e-4; lambda per family from the code's `mir_loss_weight` (FamilyRecord.entropy_weight) and FOCAL's term at the
+code's weight 10 (`metric_weight`), with our FOCAL's distance and settings.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 import jax
 import jax.numpy as jnp
 
-from bati.checks import check_integer
+from bati.checks import check_integer, check_number
 from bati.envs.base import FamilyRecord, record_default
 from bati.methods.base import MethodSpec
 from bati.methods.focal import FOCAL, FOCALConfig
@@ -43,6 +43,9 @@ class ERTRLConfig(FOCALConfig):
     """Hidden sizes of the generator and the discriminator."""
     covariance_epsilon: float = 1e-5
     """Added to the diagonal of each task's action covariance before its log-determinant."""
+    metric_weight: float = 10.0
+    """Weight of FOCAL's metric loss beside lambda H (the code's z_loss_weight): it sets the balance between
+    separating tasks and raising the entropy (runs recorded before this field had 1.0)."""
 
     def for_family(self, record: FamilyRecord | None) -> ERTRLConfig:
         if self.entropy_weight is not None:
@@ -52,6 +55,7 @@ class ERTRLConfig(FOCALConfig):
     def check(self, section: str = "ertrl") -> None:
         super().check(section)
         check_integer(f"{section}.noise_dim", self.noise_dim)
+        check_number(f"{section}.metric_weight", self.metric_weight, positive=False)
 
 
 def gaussian_entropy(samples: jax.Array, epsilon: float = 1e-5) -> jax.Array:
@@ -114,6 +118,6 @@ class ERTRL(FOCAL):
         # ... and the encoder raises its entropy through z alone, the generator frozen.
         behaviour = self.generate(jax.lax.stop_gradient(params["generator"]), observations, z_per_state, noise)
         entropy = gaussian_entropy(behaviour, self.config.covariance_epsilon).mean()
-        loss = metric - self.config.entropy_weight * entropy + d_loss + g_loss
+        loss = self.config.metric_weight * metric - self.config.entropy_weight * entropy + d_loss + g_loss
         return loss, (z, {"metric_loss": metric, "behaviour_entropy": entropy, "discriminator_loss": d_loss,
                           "generator_loss": g_loss})
