@@ -320,6 +320,9 @@ def test_settings_added_later_at_their_old_value_do_not_split_a_group(tmp_path):
     summary["config"].update(datasets=[], held_out=0.2, family_version=1)  # what a newer version records
     (newer / "eval.json").write_text(json.dumps(summary))
     assert len(group_runs(load_runs(tmp_path))) == 1
+    summary["config"].update(eval_workers=4, zoo_dir="/elsewhere")  # not part of a run's identity
+    (newer / "eval.json").write_text(json.dumps(summary))
+    assert len(group_runs(load_runs(tmp_path))) == 1
     summary["config"]["family_version"] = 2  # another env version is another setting
     (newer / "eval.json").write_text(json.dumps(summary))
     assert len(group_runs(load_runs(tmp_path))) == 2

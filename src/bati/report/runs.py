@@ -11,10 +11,10 @@ from pathlib import Path
 from bati.errors import BatiWarning
 from bati.io import read_jsonl
 
-# Config keys that do not make two runs' settings different (they are what a table compares or where
-# files went). Keys starting with "method_" are ignored as well.
-IGNORED_CONFIG_KEYS = frozenset({"method", "seed", "out_dir", "data_root", "log_to", "zoo_dir",
-                                 "method_config"})
+# Config keys that do not make two runs' settings different: what a table compares, and what is not part of
+# a run's identity (bati.config.NOT_IDENTITY: where files went, how many processes evaluated). Keys starting
+# with "method_" are ignored as well.
+COMPARED_CONFIG_KEYS = frozenset({"method", "seed", "method_config"})
 REQUIRED_KEYS = ("family", "method", "seed", "p_test_return", "p_train_return")
 # A run on your own datasets (family "own") has no p_train / p_test returns but these held-out metrics
 # (evaluate.OfflineEvaluator); it needs the first of them instead of the returns.
@@ -143,8 +143,11 @@ class RunResult:
         """
         if self.config is None:
             return {"family": self.family, "scale": self.scale, "steps": self.steps}
+        from bati.config import NOT_IDENTITY
+
+        ignored = COMPARED_CONFIG_KEYS | set(NOT_IDENTITY)
         flat = _flatten({k: v for k, v in _comparable(self.config).items()
-                         if k not in IGNORED_CONFIG_KEYS and not k.startswith("method_")})
+                         if k not in ignored and not k.startswith("method_")})
         flat.setdefault("family", self.family)
         return flat
 
