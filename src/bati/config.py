@@ -424,6 +424,9 @@ LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": Non
 # Method hyperparameters added after runs were recorded (in every section whose Config has the field): a
 # saved section without one had this value. (csro.club_negatives is not one: its old value is not its default.)
 LATER_METHOD_FIELDS = {"distance": "squared"}
+# Method hyperparameters added with a new default after runs were recorded: (method, section, field) -> the value a
+# saved run without the field had, which is not today's default (such runs are a setting of their own).
+CHANGED_METHOD_DEFAULTS = {("csro", "csro", "club_negatives"): "any-task", ("er-trl", "ertrl", "metric_weight"): 1.0}
 
 
 def _without_later_method_fields(section: dict) -> dict:
@@ -442,12 +445,10 @@ def upgrade_record(record: dict) -> dict:
         iql = {("temperature" if k == "beta" else k): v for k, v in iql.items()}
         record["iql"] = iql
     record.pop("rl_hidden_dims", None)
-    if record.get("method") == "csro" and "club_negatives" not in (record.get("csro") or {}):
-        section = record.get("csro") or default_method_record(record.get("family"), "csro")
-        record["csro"] = {**section, "club_negatives": "any-task"}
-    if record.get("method") == "er-trl" and "metric_weight" not in (record.get("ertrl") or {}):
-        section = record.get("ertrl") or default_method_record(record.get("family"), "er-trl")
-        record["ertrl"] = {**section, "metric_weight": 1.0}
+    for (method, key, name), old_value in CHANGED_METHOD_DEFAULTS.items():
+        if record.get("method") == method and name not in (record.get(key) or {}):
+            section = record.get(key) or default_method_record(record.get("family"), method)
+            record[key] = {**section, name: old_value}
     for name, cls in method_sections().items():
         section = record.get(name)
         if isinstance(section, dict):

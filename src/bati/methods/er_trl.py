@@ -9,8 +9,9 @@ maximise the entropy of pi_beta(. | s, z), estimated adversarially:
 - for each batch task t, the generator's actions at that task's B states under its latent z_t are
   fitted with a Gaussian; its entropy H_t = 1/2 log det(2 pi e Sigma_t) is what the encoder raises,
   through z_t only (the generator frozen).
-Loss = w L_FOCAL - lambda * mean_t H_t + L_D + L_G (w = 10, the code's z_loss_weight), each part reaching only its own networks (stop_gradient
-keeps the adversarial game apart, as CSRO's CLUB), one optimiser step per training step.
+Loss = w L_FOCAL - lambda * mean_t H_t + L_D + L_G (w = 10, the code's z_loss_weight), each part reaching only
+its own networks (stop_gradient keeps the adversarial game apart, as CSRO's CLUB), one optimiser step per
+training step.
 
 Our choices (docs/methods.md): IQL instead of BRAC as the offline RL core (as every method here); one
 GAN update per step instead of the code's five, on the method's Adam (learning_rate 3e-4) instead of
