@@ -16,7 +16,8 @@
 # docs/performance.md): three jobs side by side ran 4.3-5.6 ms per step each against 0.9 ms for one alone (the
 # processes time-slice the GPU), while one evaluation of 3 seeds took 16 s on one core: so one job at a time, and
 # evaluation over the spare cores.
-# Each pack is $OUT/results-<stamp>.tar.gz: every result file but checkpoints, plus session.log and bench.md.
+# Each call's pack is $OUT/results.tar.gz (every result file but checkpoints, plus session.log and bench.md), renewed
+# each time a run finishes, so a call stopped at its limit still returns the runs finished before.
 # Here: tar xzf it into results/<scale>/experiments, then `bati experiment main --scale paper --report-only
 # --out-dir results/paper/experiments` and `bati claims`.
 # CPU dry run: MODE=fg SCALE=quick METHODS=bati SEEDS="0 1" SETTINGS="steps=200" DATA=... bash this file.
@@ -89,15 +90,23 @@ seed_results() {  # the committed cells of this scale count as finished here too
   echo "$(find "$committed" -name eval.json | wc -l) committed run(s) of $committed count as finished"
 }
 
-pack() {
-  local pack
-  pack="$out/results-$(date -u +%Y%m%dT%H%M%S).tar.gz"
-  tar czf "$pack" --exclude=checkpoint.msgpack --exclude='*.lock' --exclude='.*.tmp' -C "$results" .
-  echo "packed $(find "$results" -name eval.json | wc -l) finished run(s) into $pack ($(du -h "$pack" | cut -f1))"
+finished() { find "$results" -name eval.json | wc -l; }
+
+pack() {  # one pack per call, replaced atomically: a call stopped at its limit still returns the last one
+  local pack="$out/results.tar.gz"
+  # tar exits 1 when a log grew while it was read (a running job's metrics): the pack is still whole
+  tar czf "$pack.part" --warning=no-file-changed --exclude=checkpoint.msgpack --exclude='*.lock' --exclude='.*.tmp' \
+    -C "$results" .
+  [ $? -le 1 ] && mv "$pack.part" "$pack"
+  echo "packed $(finished) finished run(s) into $pack ($(du -h "$pack" | cut -f1)) after $(( $(date +%s) - start )) s"
 }
 
-watch_work() {  # until the detached work is done or WATCH_S has passed, leaving time to pack
-  while [ ! -e "$results/session.done" ] && [ $(( $(date +%s) - start )) -lt "$watch" ]; do sleep 5; done
+watch_work() {  # until the detached work is done or WATCH_S has passed; packs each time a run finishes
+  local packed=-1
+  while [ ! -e "$results/session.done" ] && [ $(( $(date +%s) - start )) -lt "$watch" ]; do
+    [ "$(finished)" != "$packed" ] && { packed=$(finished); pack > /dev/null; }
+    sleep 5
+  done
   cat "$results/session.log"; nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv,noheader 2>/dev/null
   pack
 }

@@ -107,3 +107,16 @@ def test_er_trl_is_judged_apart_from_the_papers_baselines(tmp_path):
     found = verdicts(tmp_path)
     assert found["C8"] == ("not reproduced", "cpu")  # ER-TRL above BATI on every family
     assert found["C1"] == ("not tested", "-")  # C1 is about the paper's baselines, none of which ran
+
+
+def test_every_tested_scale_stands_beside_the_largest(tmp_path):
+    """A thin slice at a larger scale decides the headline verdict, and the smaller scale's verdict stays on
+    the page beside it."""
+    paper = next(s for s in SOURCES if s.scale == "paper")
+    write_cells(tmp_path, CPU, "main", {("bati", f): (HIGH, HIGH) for f in FAMILIES}
+                | {("recon", f): (HIGH, LOW) for f in FAMILIES})
+    write_cells(tmp_path, paper, "main", {("bati", "AntDir"): (HIGH, LOW), ("recon", "AntDir"): (HIGH, HIGH)})
+    findings = decide(tmp_path)
+    c3 = next(c for c in CLAIMS if c.name == "C3")
+    assert overall(findings, c3) == ("not reproduced", "paper")
+    assert claims_module.every_scale(findings, c3) == "cpu: reproduced; paper: not reproduced"
