@@ -5,8 +5,12 @@
 #           watches it for WATCH_S seconds and packs what is finished into $OUT;
 #   watch   (each later call)    watches the detached work for WATCH_S seconds and packs again;
 #   fg      (a CPU dry run)      the same work in the foreground, stopped at BUDGET_S, then packed.
-#   run(command="MODE=start FAMILIES='AntDir HalfCheetahVel' bash scripts/gpu_paper_scale.sh", carry=[".whl"])
-#   run(command="MODE=watch bash scripts/gpu_paper_scale.sh", carry=[".whl"])       # within 30 s of the last reply
+#   run(command="MODE=start FAMILIES='AntDir HalfCheetahDir' WATCH_S=555 bash scripts/gpu_paper_scale.sh",
+#       carry=[".whl"], timeout_s=600)
+#   run(command="MODE=watch WATCH_S=<budget_left_s - 70> bash scripts/gpu_paper_scale.sh", carry=[".whl"],
+#       timeout_s=<budget_left_s - 30>)                                             # within 30 s of the last reply
+# The working tree that travels must stay under 64 MiB with the 27 MB of wheels: on 2026-11-26 the tracked files
+# were 40 MB, so results/cpu and results/quick were moved out of the checkout for the calls (and back after).
 # The work: BENCH=1 first measures seed-steps/s at k = 1 3 5 8 (benchmarks/seed_throughput.py, pinned to core 0
 # while the first family's data is collected on the other cores; the experiment waits for it: on 2026-11-25 its
 # compiles took over 9 minutes); then per family: collect its paper data over all cores (the next family's
@@ -25,8 +29,10 @@ set -u
 mode=${MODE:-fg}
 scale=${SCALE:-paper}
 families=${FAMILIES:-AntDir}
-methods=${METHODS:-"oracle bati bati-r focal csro unicorn recon no-context"}
-seeds=${SEEDS:-"0 1 2 3 4"}
+# The claim methods first (C1-C3 compare BATI with these four), then the references; 3 seeds (the claims' minimum):
+# a 15-minute session finishes 2-3 such jobs (docs/performance.md), and the committed cells are skipped.
+methods=${METHODS:-"bati focal csro recon unicorn oracle bati-r no-context"}
+seeds=${SEEDS:-"0 1 2"}
 workers=${WORKERS:-1}
 cores=$(nproc)
 eval_workers=${EVAL_WORKERS:-$((cores > 5 ? cores - 4 : 1))}
