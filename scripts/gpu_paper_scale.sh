@@ -11,7 +11,7 @@
 #       timeout_s=<budget_left_s - 30>)                                             # within 30 s of the last reply
 # The working tree that travels must stay under 64 MiB with the 27 MB of wheels: on 2026-11-26 the tracked files
 # were 40 MB, so results/cpu and results/quick were moved out of the checkout for the calls (and back after).
-# The work: BENCH=1 first measures seed-steps/s at k = 1 3 5 8 (benchmarks/seed_throughput.py, pinned to core 0
+# The work: BENCH=1 first measures seed-steps/s at k = BENCH_SEEDS (default 3, chunks of 100 steps: a job's) (benchmarks/seed_throughput.py, pinned to core 0
 # while the first family's data is collected on the other cores; the experiment waits for it: on 2026-11-25 its
 # compiles took over 9 minutes); then per family: collect its paper data over all cores (the next family's
 # collection runs beside the current experiment, niced, on a quarter of the cores), and `bati experiment main
@@ -68,7 +68,7 @@ work() {  # the session's work: benchmark, then family after family
   set -- $families
   if [ -n "${BENCH:-}" ]; then
     taskset -c 0 python3 benchmarks/seed_throughput.py --family "$1" --method bati --scale "$scale" \
-      --seeds 1 3 5 8 --length "${BENCH_LENGTH:-20}" --chunks 3 > "$results/bench.md" 2>&1 &
+      --seeds ${BENCH_SEEDS:-3} --length "${BENCH_LENGTH:-100}" --chunks 3 > "$results/bench.md" 2>&1 &
     bench=$!
     collect "$1" $((cores > 1 ? cores - 1 : 1)); echo "$1 data (rc $?) after $(( $(date +%s) - start )) s"
     wait "$bench"; echo "benchmark (rc $?) after $(( $(date +%s) - start )) s"; cat "$results/bench.md"

@@ -295,19 +295,30 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
     step = runs[0].step
     last_checkpoint = time.monotonic()
     train_keys = jnp.stack([jax.random.fold_in(r.base_key, 1) for r in runs])
-    states = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[r.state for r in runs])
+    alone = len(runs) == 1  # the plain program: a run trained alone gives exactly its own numbers
+    # The states stay on the device, stacked over the runs, between chunks; each run's own state is cut out
+    # only where it is needed (a checkpoint, the end): cutting ~125 leaves per run after every chunk cost
+    # ~45 ms per 100 steps for 3 runs (measured on the CPU), the device idle meanwhile.
+    state = runs[0].state if alone else None
+    states = None if alone else jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[r.state for r in runs])
+
+    def stacked():
+        return jax.tree_util.tree_map(lambda x: x[None], state) if alone else states
+
+    def sync_runs():
+        for j, run in enumerate(runs):
+            run.state = state if alone else jax.tree_util.tree_map(lambda x, j=j: x[j], states)
+
     while step < until:
         length = min(c.log_every, until - step)
-        if len(runs) == 1:  # the plain program: a run trained alone gives exactly its own numbers
-            state, metrics = trainer.run_chunk(runs[0].state, train_keys[0], data.train, length=length)
-            states = jax.tree_util.tree_map(lambda x: x[None], state)
+        if alone:
+            state, metrics = trainer.run_chunk(state, train_keys[0], data.train, length=length)
             metrics = jax.tree_util.tree_map(lambda x: x[None], metrics)
         else:
             states, metrics = trainer.run_chunks(states, train_keys, data.train, length=length)
         step += length
         metrics = jax.device_get(metrics)
         for j, run in enumerate(runs):
-            run.state = jax.tree_util.tree_map(lambda x, j=j: x[j], states)
             record = {k: float(v[j]) for k, v in metrics.items()}
             bad = [k for k, v in record.items() if not math.isfinite(v)]
             if bad:
@@ -318,7 +329,7 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
                 sink.log(step, record, "train")
         if step % c.eval_every == 0 or step == c.steps:
             keys = jnp.stack([jax.random.fold_in(r.base_key, 2 + step) for r in runs])
-            results = evaluator.evaluate_runs(states, keys, [r.config.seed * 7919 + step for r in runs])
+            results = evaluator.evaluate_runs(stacked(), keys, [r.config.seed * 7919 + step for r in runs])
             for run, result in zip(runs, results):
                 append_jsonl(run.out / "eval.jsonl", {"step": step, **result.summary()})
                 for sink in run.sinks:
@@ -326,10 +337,12 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
             progress.update(bar, status=evaluator.status(results))
         if (step % c.checkpoint_every == 0 or step == c.steps
                 or time.monotonic() - last_checkpoint >= CHECKPOINT_SECONDS):
+            sync_runs()
             for run in runs:
                 save_checkpoint(run.out / CHECKPOINT_NAME, run.state)
             last_checkpoint = time.monotonic()
         progress.update(bar, completed=step)  # the runs behind set the pace
+    sync_runs()
 
 
 @dataclass
