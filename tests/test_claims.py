@@ -119,4 +119,11 @@ def test_every_tested_scale_stands_beside_the_largest(tmp_path):
     findings = decide(tmp_path)
     c3 = next(c for c in CLAIMS if c.name == "C3")
     assert overall(findings, c3) == ("not reproduced", "paper")
-    assert claims_module.every_scale(findings, c3) == "cpu: reproduced; paper: not reproduced"
+    assert claims_module.every_scale(findings, c3) == ("cpu: reproduced (all 5 families); "
+                                                       "paper: not reproduced (AntDir; 1 of 5 families)")
+
+
+def test_a_claim_about_every_family_holds_at_most_partly_on_some(tmp_path):
+    """C2 decided on AntDir alone is 'partly': the claim is about all five families."""
+    write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})
+    assert verdicts(tmp_path)["C2"] == ("partly", "cpu")
