@@ -370,27 +370,34 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
     return findings
 
 
+def _tested(findings: list[Finding], claim: Claim) -> list[Finding]:
+    """The claim's findings that decide something, smallest scale first."""
+    return sorted((f for f in findings if f.claim is claim and f.verdict != "not tested"),
+                  key=lambda f: SOURCES.index(f.source) if f.source in SOURCES else -1)
+
+
+def _scale_name(finding: Finding) -> str:
+    return finding.source.label.split(" ")[0]
+
+
 def overall(findings: list[Finding], claim: Claim) -> tuple[str, str]:
     """The verdict at the largest scale that tests the claim, and that scale's label."""
-    tested = [f for f in findings if f.claim is claim and f.verdict != "not tested"]
-    if not tested:
-        return "not tested", "-"
-    last = max(tested, key=lambda f: SOURCES.index(f.source) if f.source in SOURCES else -1)
-    return last.verdict, last.source.label.split(" ")[0]
+    tested = _tested(findings, claim)
+    return (tested[-1].verdict, _scale_name(tested[-1])) if tested else ("not tested", "-")
 
 
 def every_scale(findings: list[Finding], claim: Claim) -> str:
     """The verdict at each scale that tests the claim, smallest first: a thin slice at a large scale (one
     family on a GPU, say) stands beside the wider evidence of a smaller one instead of hiding it."""
-    tested = sorted((f for f in findings if f.claim is claim and f.verdict != "not tested"),
-                    key=lambda f: SOURCES.index(f.source) if f.source in SOURCES else -1)
+
     def coverage(families: list[str]) -> str:
         if len(families) == len(claim.families) > 1:
             return f"all {len(families)} families"
         return ", ".join(families) + (f"; {len(families)} of {len(claim.families)} families"
                                       if len(families) < len(claim.families) else "")
 
-    return "; ".join(f"{f.source.label.split(' ')[0]}: {f.verdict} ({coverage(f.families)})" for f in tested) or "-"
+    return "; ".join(f"{_scale_name(f)}: {f.verdict} ({coverage(f.families)})"
+                     for f in _tested(findings, claim)) or "-"
 
 
 def claims_markdown(findings: list[Finding], command: str) -> str:
