@@ -9,11 +9,13 @@
 # (AntDir ER-TRL at the cpu scale: 40.0 ms per step for one seed, 135.6 ms for three; docs/performance.md). Run it from an archive of a fixed commit
 # (git worktree add ../bg-<commit> <commit>) so that the code does not change under a running job; results go into
 # this checkout's results/cpu/experiments.
-# Order: claims first. A seed costs 20-80 min on this project's 2-core machine (IQL alone ~20 min; CSRO and ER-TRL
-# ~1-1.3 h, Recon and BATI-R ~45 min, with other work on the cores), so the table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL
-# (issue 28), the AntDir noise ablation's BATI, FOCAL and ER-TRL (claim C4, untested at every scale), then phase 1:
-# family by family, the methods that the claims C1-C3 compare (BATI, its reward-only variant, the paper's baselines,
-# the Oracle and the no-context floor), then the noise ablation's other methods, the FOCAL distance ablation, then
+# Order: claims first. A seed costs 12-16 min on free cores (6.9-7.7 ms per step for BATI, docs/performance.md) and
+# 20-80 min with other work beside (IQL alone ~20 min; CSRO and ER-TRL ~1-1.3 h, Recon and BATI-R ~45 min), so the
+# table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL (issue 28), the AntDir noise ablation's
+# BATI and FOCAL (claim C4, untested at every scale), then phase 1 in two passes over the families: the Oracle (the
+# normaliser), BATI and FOCAL first (claims C1-C2 on five families), ER-TRL's noise cells, then the other methods
+# that the claims compare (BATI's reward-only variant, the paper's baselines, the no-context floor), then the noise
+# ablation's other methods, the FOCAL distance ablation, then
 # phase 2: the others (ER-TRL, BATI-auto, DPT) on every family. WAIT_PID: a running job's process to wait for first
 # (a queue restarted with a new order beside a job of the old one).
 # After a job: `bati experiment main --scale cpu --report-only --out-dir results/cpu/experiments --data-root DATA`
@@ -61,7 +63,8 @@ job() {  # $1 experiment, $2 family, $3 method, the rest: more options; one seed
   python -m bati.cli experiment "$experiment" --scale cpu --report-only --data-root "$data_root" "$@" > /dev/null
 }
 families=${FAMILIES:-"AntDir HalfCheetahVel HalfCheetahDir HopperParam WalkerParam"}
-phase1=${PHASE1:-"oracle bati bati-r focal csro unicorn recon no-context"}
+phase1a=${PHASE1A:-"oracle bati focal"}
+phase1b=${PHASE1B:-"bati-r csro unicorn recon no-context"}
 phase2=${PHASE2:-"er-trl bati-auto dpt"}
 # Phase 0: jobs a stop interrupted (a cell with a checkpoint and no eval.json) finish first: eps = 1 cells are the
 # main table's, the others the noise ablation's.
@@ -88,10 +91,13 @@ main_phase() {  # $1: the methods, each on every family
   done
 }
 # Claim C4 (noise hurts the baselines, not BATI) is untested at every scale: the AntDir noise ablation's claim pair
-# (BATI and FOCAL, the baseline whose fall on p_test is decided on AntDir) and ER-TRL's part (issue 28) come before
-# the other families, the rest of the ablation's methods after them.
-noise ${NOISE_FIRST:-bati focal er-trl}
-main_phase "$phase1"
+# (BATI and FOCAL, the baseline whose fall on p_test is decided on AntDir) comes first. Then phase 1 in two passes:
+# the claim pair with the Oracle (the normaliser) on every family, so that C1-C2 rest on five families as early as
+# possible, then the other paper methods; ER-TRL's part of the noise ablation (issue 28) between them.
+noise ${NOISE_FIRST:-bati focal}
+main_phase "$phase1a"
+noise ${NOISE_NEXT:-er-trl}
+main_phase "$phase1b"
 noise ${NOISE_REST:-bati-r csro unicorn recon}
 # FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the
 # baselines' fall on p_test? Its own output directory, so the main table's report is not touched.
