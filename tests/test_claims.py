@@ -127,3 +127,27 @@ def test_a_claim_about_every_family_holds_at_most_partly_on_some(tmp_path):
     """C2 decided on AntDir alone is 'partly': the claim is about all five families."""
     write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})
     assert verdicts(tmp_path)["C2"] == ("partly", "cpu")
+
+
+def test_a_compared_cell_still_rising_over_its_scored_window_is_named_beside_the_verdict(tmp_path):
+    """FOCAL's p_test climbs through its last five evaluations on AntDir (+0.4 normalised): the page says the
+    verdict rests on a cell that has not converged; BATI's flat curves count as converged."""
+    write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})
+    plan = plan_experiment(get_spec("main"), "cpu", tmp_path / CPU.out_dir, seeds=(0, 1, 2))
+    for cell in plan.cells:
+        path = cell.config.out_dir / "eval.json"
+        if not path.exists():
+            continue
+        record = json.loads(path.read_text())
+        rise = 0.1 if record["method"] == "focal" else 0.0
+        record |= {"evaluations_averaged": 5, "curve": [
+            {"step": 10_000 * (i + 6), "p_test_return": record["p_test_return"] + rise * (i - 2) + 0.01 * record["seed"],
+             "p_train_return": record["p_train_return"]} for i in range(5)]}
+        path.write_text(json.dumps(record))
+    findings = decide(tmp_path)
+    c2 = next(f for f in findings if f.claim.name == "C2" and f.source is CPU)
+    assert c2.flat == 1 and c2.moving == ["focal on AntDir rising (+0.40 [+0.40, +0.40])"]
+    assert claims_module.converged_text(c2, short=True) == "no: 1 of 2 cells still moving (focal on AntDir rising)"
+    assert "still moving: focal on AntDir rising" in claims_module.every_scale(findings, c2.claim)
+    c3 = next(f for f in findings if f.claim.name == "C3")  # compares BATI with Recon only: FOCAL is not its
+    assert c3.moving == [] and claims_module.converged_text(c3, short=True) == "yes (1 of 1 cell flat)"

@@ -429,3 +429,20 @@ def test_wall_time_counts_a_vmapped_job_once_and_one_seed_jobs_each():
     vmapped = [(("AntDir/cpu", "bati"), 1200.0)] * 3
     one_per_job = [(("AntDir/cpu", "csro"), 5796.0), (("AntDir/cpu", "csro"), 3501.9)]
     assert jobs_wall_time(vmapped + one_per_job) == pytest.approx(1200.0 + 5796.0 + 3501.9)
+
+
+def test_the_drift_over_the_scored_window_says_whether_a_number_still_moves(results, tmp_path):
+    """The fixture's curves approach their number along a line of slope -/+1 per 100 steps (seeds 0, 2 / 1): over
+    the 5 evaluations averaged (1,800-3,000 steps) the drift is -12, +12, -12 raw, -0.048 / +0.048 normalised."""
+    report = build_report(results, out_dir=tmp_path / "report", reps=200)
+    entry = table(report, "PointGoal", 1.0)
+    bati = row(entry, "bati")
+    assert bati["p_test_drift"] == pytest.approx(-4.0 / 250.0)
+    assert bati["p_test_drift_low"] <= bati["p_test_drift"] <= bati["p_test_drift_high"]
+    assert "p_test drift over the scored window [95% CI]" in entry["markdown"]
+    assert "-0.02 [" in entry["markdown"] and "] flat |" in entry["markdown"]
+    runs = read_csv(tmp_path / "report" / "runs.csv")
+    drifts = sorted(float(r["p_test_drift"]) for r in runs if r["table"] == entry["slug"] and r["method"] == "bati")
+    assert drifts == pytest.approx([-0.048, -0.048, 0.048])
+    hopper = table(report, "HopperParam")  # old files without references: raw returns, -12 / +12 / -12
+    assert row(hopper, "bati")["p_test_drift"] == pytest.approx(-4.0)

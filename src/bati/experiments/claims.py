@@ -10,7 +10,9 @@ where the runs record the references (the MuJoCo families and Kuhn poker), else 
 
 Verdicts: `reproduced` (every interval decides for the paper, on every family the claim names), `partly`
 (some do, or all do on only some of the families), `not reproduced` (none does: the intervals include chance or
-decide against it), `not tested`. The page's table gives the verdict at every tested scale beside the largest's.
+decide against it), `not tested`. The page's table gives the verdict at every tested scale beside the largest's,
+and whether the cells a claim compares are converged there: a cell whose p_test still drifts over its scored
+window (bati.report.convergence) is named, since a verdict that rests on it may change with more steps.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from bati.experiments.probes import read_probe
+from bati.report.convergence import drift_interval, drift_verdict, run_drift
 from bati.experiments.specs import MUJOCO, get_spec, plan_experiment
 from bati.report.runs import RunResult, jobs_wall_time
 from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval, require_rliable
@@ -71,6 +74,8 @@ class Record:
     wall_time_s: float
     job: str = ""
     """What shares its wall time: the seeds of one training job (one setting and method), or one probe."""
+    drift: float = math.nan
+    """The run's p_test drift over its scored window (bati.report.convergence): ~0 when converged."""
 
     @property
     def change(self) -> float:
@@ -100,9 +105,10 @@ def gather(spec_name: str, source: Source, root: Path) -> list[Record]:
                         p.get("wall_time_s"), f"{c.out_dir}/{p['context_length']}")
                        for p in (read_probe(c.out_dir, probe) for probe in probes)
                        if p is not None and "p_test_return" in p]
+        drift = run_drift(run)  # a probe evaluates its cell's training run: the cell's drift
         for p_test, p_train, length, commit, wall, job in results:
             records.append(Record(c.method, c.family, c.noise, c.seed, score(p_test), score(p_train), p_test,
-                                  length, commit, run.device, wall or 0.0, job))
+                                  length, commit, run.device, wall or 0.0, job, drift))
     return records
 
 
@@ -316,6 +322,8 @@ class Claim:
     experiment: str
     families: tuple[str, ...]
     test: Callable[[list[Record], tuple[str, ...]], tuple[list[str], str]]
+    methods: tuple[str, ...] = ("bati",) + BASELINES
+    """The methods it compares: their runs' convergence is reported beside the verdict."""
 
 
 CLAIMS = (
@@ -323,7 +331,8 @@ CLAIMS = (
           best_on_p_test),
     Claim("C2", "the baselines match BATI on p_train contexts and fall on p_test contexts", "Fig. 8 vs Fig. 4",
           "main", MUJOCO, fall_on_p_test),
-    Claim("C3", "Recon (BATI's model, an encoder for z) stays below BATI", "Table 4", "main", MUJOCO, recon_below),
+    Claim("C3", "Recon (BATI's model, an encoder for z) stays below BATI", "Table 4", "main", MUJOCO, recon_below,
+          ("bati", "recon")),
     Claim("C4", "noise in the collecting policy hurts the baselines, not BATI", "Fig. 5, 7", "noise",
           ("AntDir", "HalfCheetahDir"), noise_hurts_baselines),
     Claim("C5", "BATI improves with longer contexts (HalfCheetahDir, eps 0.9, trained with C = 50)", "Table 1",
@@ -333,7 +342,7 @@ CLAIMS = (
     Claim("C7", "BATI is the best method on Kuhn poker", "Table 6", "kuhn", ("KuhnPoker",), best_on_p_test),
     Claim("C8", "BATI's p_test return is above ER-TRL's on all five MuJoCo families (ours: ER-TRL, AAAI 2025, "
           "is not in the paper)", "issue 28", "main", MUJOCO,
-          lambda records, families: best_on_p_test(records, families, ("er-trl",))),
+          lambda records, families: best_on_p_test(records, families, ("er-trl",)), ("bati", "er-trl")),
 )
 
 
@@ -349,6 +358,10 @@ class Finding:
     commits: list[str]
     devices: list[str]
     wall_time_s: float
+    moving: list[str]
+    """The compared cells (method, family, eps) whose p_test still drifts over the scored window."""
+    flat: int
+    """The compared cells with >= MIN_SEEDS seeds whose drift interval holds 0."""
 
 
 def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> list[Finding]:
@@ -362,12 +375,33 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
             if not records:
                 continue
             lines, verdict = claim.test(records, claim.families)
+            moving, flat = convergence(records, claim.methods)
             findings.append(Finding(claim, source, lines, verdict, len(records),
                                     [f for f in claim.families if any(r.family == f for r in records)],
                                     sorted({r.commit[:12] for r in records if r.commit}),
                                     sorted({r.device for r in records if r.device}),
-                                    jobs_wall_time((r.job, r.wall_time_s) for r in records)))
+                                    jobs_wall_time((r.job, r.wall_time_s) for r in records), moving, flat))
     return findings
+
+
+def convergence(records: list[Record], methods: tuple[str, ...]) -> tuple[list[str], int]:
+    """Of the cells (method, family, eps) of `methods` with >= MIN_SEEDS seeds: those whose p_test still drifts
+    over the scored window (its 95% interval excludes 0), as text, and how many are flat."""
+    moving, flat = [], 0
+    cells = sorted({(r.method, r.family, r.noise) for r in records if r.method in methods},
+                   key=lambda cell: (methods.index(cell[0]), cell[1:]))
+    for method, family, noise in cells:
+        drifts = {r.seed: r.drift for r in records if (r.method, r.family, r.noise) == (method, family, noise)}
+        if len(drifts) < MIN_SEEDS:
+            continue
+        mean, low, high = drift_interval(list(drifts.values()), reps=REPS)
+        verdict = drift_verdict(mean, low, high)
+        if verdict == "flat":
+            flat += 1
+        elif verdict:
+            eps = f" eps {noise:g}" if len({r.noise for r in records}) > 1 else ""
+            moving.append(f"{method} on {family}{eps} {verdict} ({mean:+.2f} [{low:+.2f}, {high:+.2f}])")
+    return moving, flat
 
 
 def _tested(findings: list[Finding], claim: Claim) -> list[Finding]:
@@ -396,8 +430,24 @@ def every_scale(findings: list[Finding], claim: Claim) -> str:
         return ", ".join(families) + (f"; {len(families)} of {len(claim.families)} families"
                                       if len(families) < len(claim.families) else "")
 
-    return "; ".join(f"{_scale_name(f)}: {f.verdict} ({coverage(f.families)})"
+    def moving(finding: Finding) -> str:
+        return f"; still moving: {', '.join(m.split(' (')[0] for m in finding.moving)}" if finding.moving else ""
+
+    return "; ".join(f"{_scale_name(f)}: {f.verdict} ({coverage(f.families)}{moving(f)})"
                      for f in _tested(findings, claim)) or "-"
+
+
+def converged_text(finding: Finding, short: bool = False) -> str:
+    """Whether the compared cells of a finding have stopped moving (see `convergence`)."""
+    cells = finding.flat + len(finding.moving)
+    if not cells:
+        return "-" if short else f"no compared cell has {MIN_SEEDS} seeds"
+    if not finding.moving:
+        plural = "s" if cells > 1 else ""
+        return f"yes ({cells} of {cells} cell{plural} flat)" if short else f"yes: {cells} compared cell{plural}, flat"
+    if short:
+        return f"no: {len(finding.moving)} of {cells} cells still moving ({', '.join(m.split(' (')[0] for m in finding.moving)})"
+    return f"no: {finding.flat} of {cells} compared cells flat; still moving: {'; '.join(finding.moving)}"
 
 
 def claims_markdown(findings: list[Finding], command: str) -> str:
@@ -407,12 +457,18 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
              "record random and expert returns (C6: raw returns, the claim is about their sign). Intervals: "
              f"95% stratified-bootstrap percentile intervals through rliable ({REPS:,} replicates, seed 0). A "
              f"ranking is called only with >= {MIN_SEEDS} seeds per method; P(X > Y) decides when its interval "
-             "excludes 1/2. The verdict of a claim is the one at the largest scale that tests it.", "",
-             "| claim | paper | verdict | at scale | every tested scale |", "| --- | --- | --- | --- | --- |"]
+             "excludes 1/2. The verdict of a claim is the one at the largest scale that tests it. Converged: "
+             "the p_test drift over the scored window (the change across the evaluations a run's number averages, "
+             "of the least-squares line through them; mean over seeds with its 95% interval) of every compared "
+             f"cell with >= {MIN_SEEDS} seeds holds 0; a cell whose interval excludes 0 is still rising or falling, "
+             "and a verdict that rests on it may change with more steps.", "",
+             "| claim | paper | verdict | at scale | converged there | every tested scale |",
+             "| --- | --- | --- | --- | --- | --- |"]
     for claim in CLAIMS:
         verdict, scale = overall(findings, claim)
+        tested = _tested(findings, claim)
         lines.append(f"| {claim.name}: {claim.text} | {claim.source} | **{verdict}** | {scale} | "
-                     f"{every_scale(findings, claim)} |")
+                     f"{converged_text(tested[-1], short=True) if tested else '-'} | {every_scale(findings, claim)} |")
     for claim in CLAIMS:
         lines += ["", f"## {claim.name}: {claim.text} ({claim.source}; experiment `{claim.experiment}`)", ""]
         mine = [f for f in findings if f.claim is claim]
@@ -423,6 +479,7 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
                          f"device(s) {', '.join(f.devices) or '?'}; summed wall time {f.wall_time_s / 60:.1f} min)")
             lines.append("")
             lines += [f"- {line}" for line in f.lines] or ["- (no comparison possible)"]
+            lines.append(f"- converged: {converged_text(f)}")
             lines.append("")
     return "\n".join(lines).rstrip() + "\n"
 

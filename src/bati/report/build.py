@@ -26,6 +26,7 @@ from bati.errors import BatiError
 from bati.io import atomic_write_text, make_dirs
 from bati.report.runs import RunResult, find_eval_files, load_runs
 from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval, performance_profile, require_rliable
+from bati.report.convergence import drift_interval, format_drift, run_drift
 from bati.report.curves import save_figure
 from bati.report.held_out import HELD_OUT_COLUMNS, held_out_markdown, held_out_rows, plot_held_out
 from bati.report.tables import METHOD_LABELS, return_digits
@@ -48,14 +49,14 @@ CSV_COLUMNS = (
     "test_train_ratio_normalised",
     "p_train_inference_error_mean", "p_train_inference_error_std",
     "p_test_inference_error_mean", "p_test_inference_error_std",
-    "iqm_score", "iqm_p_test", "iqm_low", "iqm_high",
+    "iqm_score", "iqm_p_test", "iqm_low", "iqm_high", "p_test_drift", "p_test_drift_low", "p_test_drift_high",
     "p_bati_better", "p_bati_better_low", "p_bati_better_high",
     "p_bati_r_better", "p_bati_r_better_low", "p_bati_r_better_high",
 )
 RUN_COLUMNS = ("table", "family", "method", "seed", "scale", "noise", "steps", "evaluations_averaged",
                "p_train_return", "p_test_return", "p_train_normalised", "p_test_normalised",
-               "p_train_inference_error", "p_test_inference_error", "random_return", "expert_return",
-               "wall_time_s", "device", "commit", "path",
+               "p_train_inference_error", "p_test_inference_error", "p_test_drift", "random_return",
+               "expert_return", "wall_time_s", "device", "commit", "path",
                "held_out_inference_accuracy", "held_out_representation_loss", "held_out_return")
 
 
@@ -301,6 +302,9 @@ def method_rows(group: Group, reps: int = BOOTSTRAP_REPS, seed: int = 0) -> list
         row["iqm_p_test"] = row["iqm_low"] = row["iqm_high"] = math.nan
         if len(runs) >= 2:
             row["iqm_p_test"], row["iqm_low"], row["iqm_high"] = iqm_interval(scores(method), reps, seed)
+        # converged? the drift of p_test over the evaluations the number averages (bati.report.convergence)
+        row["p_test_drift"], row["p_test_drift_low"], row["p_test_drift_high"] = drift_interval(
+            [run_drift(r, normalise=group.normalised) for r in runs], reps, seed)
         for improver in IMPROVERS:
             col = f"p_{improver.replace('-', '_')}_better"
             row[col] = row[f"{col}_low"] = row[f"{col}_high"] = math.nan
@@ -324,6 +328,7 @@ def table_markdown(group: Group, rows: list[dict], title: str) -> str:
                  if any(math.isfinite(r[f"p_{m.replace('-', '_')}_better"]) for r in rows)]
     has_iqm = any(math.isfinite(r["iqm_p_test"]) for r in rows)
     has_notes = any(r["notes"] for r in rows)
+    has_drift = any(math.isfinite(r["p_test_drift"]) for r in rows)
     rd = return_digits(*(r[f"{s}_mean"] for r in rows for s in ("p_train", "p_test")))  # 3 for per-hand returns
     header = ["method", "seeds", "p_train return", "p_test return"]
     if norm:
@@ -334,6 +339,8 @@ def table_markdown(group: Group, rows: list[dict], title: str) -> str:
     if has_iqm:
         header.append(f"IQM p_test{' normalised' if norm else ''} [95% CI]")
     header += [f"P({METHOD_LABELS.get(m, m)} > method) [95% CI]" for m in improvers]
+    if has_drift:
+        header.append("p_test drift over the scored window [95% CI]")
     if has_notes:
         header.append("notes")
     lines = [f"### {title}", "", group_description(group), "",
@@ -361,6 +368,9 @@ def table_markdown(group: Group, rows: list[dict], title: str) -> str:
             col = f"p_{m.replace('-', '_')}_better"
             cells.append("–" if not math.isfinite(r[col]) else
                          f"{r[col]:.2f} [{r[f'{col}_low']:.2f}, {r[f'{col}_high']:.2f}]")
+        if has_drift:
+            cells.append(format_drift(r["p_test_drift"], r["p_test_drift_low"], r["p_test_drift_high"],
+                                      2 if norm else rd))
         if has_notes:
             cells.append(r["notes"])
         lines.append("| " + " | ".join(cells) + " |")
@@ -411,6 +421,7 @@ def run_records(group: Group) -> list[dict]:
                 "p_test_normalised": r.normalised(r.p_test_return),
                 "p_train_inference_error": r.p_train_inference_error,
                 "p_test_inference_error": r.p_test_inference_error,
+                "p_test_drift": run_drift(r, normalise=group.normalised),
                 "random_return": refs.get("random"), "expert_return": refs.get("expert"),
                 "wall_time_s": r.wall_time_s, "device": r.device, "commit": r.commit, "path": str(r.path),
                 **r.held_out})

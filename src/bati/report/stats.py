@@ -81,6 +81,13 @@ def iqm_interval(scores, reps: int = BOOTSTRAP_REPS, seed: int = 0) -> tuple[flo
     return _estimate(_matrix(scores), lambda s: np.array([metrics.aggregate_iqm(s)]), reps, seed)
 
 
+def mean_interval(scores, reps: int = BOOTSTRAP_REPS, seed: int = 0) -> tuple[float, float, float]:
+    """The mean of all entries and its 95% stratified-bootstrap interval: (mean, low, high)."""
+    from rliable import metrics
+
+    return _estimate(_matrix(scores), lambda s: np.array([metrics.aggregate_mean(s)]), reps, seed)
+
+
 def improvement_interval(x, y, reps: int = BOOTSTRAP_REPS, seed: int = 0) -> tuple[float, float, float]:
     """P(X > Y) and its 95% interval (X's and Y's runs resampled independently within each task)."""
     from rliable import metrics
