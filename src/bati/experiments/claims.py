@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from bati.experiments.probes import read_probe
-from bati.report.convergence import drift_interval, drift_verdict, run_drift
 from bati.experiments.specs import MUJOCO, get_spec, plan_experiment
+from bati.report.convergence import drift_interval, drift_verdict, run_drift
 from bati.report.runs import RunResult, jobs_wall_time
 from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval, require_rliable
 

@@ -24,11 +24,17 @@ import numpy as np
 
 from bati.errors import BatiError
 from bati.io import atomic_write_text, make_dirs
-from bati.report.runs import RunResult, find_eval_files, load_runs
-from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval, performance_profile, require_rliable
 from bati.report.convergence import drift_interval, format_drift, run_drift
 from bati.report.curves import save_figure
 from bati.report.held_out import HELD_OUT_COLUMNS, held_out_markdown, held_out_rows, plot_held_out
+from bati.report.runs import RunResult, find_eval_files, load_runs
+from bati.report.stats import (
+    BOOTSTRAP_REPS,
+    improvement_interval,
+    iqm_interval,
+    performance_profile,
+    require_rliable,
+)
 from bati.report.tables import METHOD_LABELS, return_digits
 
 # Methods that a probability of improvement is computed for (against every other method of the group).
