@@ -44,9 +44,15 @@ def run_queue(tmp_path: Path, **env: str) -> tuple[list[tuple[str, str, str, str
 
 def test_order_claims_first(tmp_path):
     jobs, _ = run_queue(tmp_path)
-    assert jobs[:6] == [("main", "AntDir", "csro", "0"), ("main", "AntDir", "er-trl", "0"),
+    assert jobs[:7] == [("main", "AntDir", "csro", "0"), ("main", "AntDir", "er-trl", "0"),
                         ("noise", "AntDir", "bati", "0"), ("noise", "AntDir", "focal", "0"),
-                        ("noise", "AntDir", "er-trl", "0"), ("main", "AntDir", "oracle", "0")]
+                        ("main", "AntDir", "oracle", "0"), ("main", "AntDir", "bati", "0"),
+                        ("main", "AntDir", "focal", "0")]
+    # phase 1's first pass (the Oracle, BATI, FOCAL) on every family before ER-TRL's noise cells and the rest
+    first_pass = [(f, m) for _, f, m, _ in jobs[4:19]]
+    assert first_pass == [(f, m) for f in ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")
+                          for m in ("oracle", "bati", "focal")]
+    assert jobs[19] == ("noise", "AntDir", "er-trl", "0") and jobs[20] == ("main", "AntDir", "bati-r", "0")
     families = list(dict.fromkeys(family for experiment, family, _, _ in jobs if experiment == "main"))
     assert families == ["AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam"]
     assert ("main", "WalkerParam", "dpt", "0") == jobs[-1]  # phase 2 last
