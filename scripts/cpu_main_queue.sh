@@ -1,14 +1,16 @@
 #!/usr/bin/env bash
 # The cpu-scale main table (issue 30), one family and one method at a time, in the background:
-#   PYTHONPATH=$PWD/src nohup nice bash scripts/cpu_main_queue.sh /work/run-data /work/main/results/cpu/experiments \
-#       > cpu-queue.log 2>&1 &   (PYTHONPATH: this checkout's code, not the editable install's)
+#   git worktree add ../bg-<commit> <commit>    # the code of a fixed commit (it must not change under a running job)
+#   cd <this checkout> && PYTHONPATH=../bg-<commit>/src nohup nice bash ../bg-<commit>/scripts/cpu_main_queue.sh \
+#       /work/run-data results/cpu/experiments > cpu-queue.log 2>&1 &
+# (PYTHONPATH: the worktree's code, not the editable install's; run from this checkout with a relative out dir, so
+# that the reports and sweep files it writes name `results/cpu/experiments` as a rerun here would, not an absolute
+# path; each run records the commit of the code it ran, the worktree's.)
 # Each line is a resumable `bati experiment`: finished cells are skipped (in seconds), an interrupted job resumes
 # from its checkpoints (a run checkpoints at least every 10 minutes) when the machine still holds them. Every job
 # trains one seed: a work session lasts 3 hours, often on a fresh machine (checkpoints are git-ignored; when the
 # machine does outlive a session, phase 0 below resumes its cut job), so a job should finish inside one; on 2 cores one seed at a time is also no slower than three vmapped seeds
-# (AntDir ER-TRL at the cpu scale: 40.0 ms per step for one seed, 135.6 ms for three; docs/performance.md). Run it from an archive of a fixed commit
-# (git worktree add ../bg-<commit> <commit>) so that the code does not change under a running job; results go into
-# this checkout's results/cpu/experiments.
+# (AntDir ER-TRL at the cpu scale: 40.0 ms per step for one seed, 135.6 ms for three; docs/performance.md).
 # Order: claims first. A seed costs 12-16 min on free cores (6.9-7.7 ms per step for BATI, docs/performance.md) and
 # 20-80 min with other work beside (IQL alone ~20 min; CSRO and ER-TRL ~1-1.3 h, Recon and BATI-R ~45 min), so the
 # table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL (issue 28), the AntDir noise ablation's
