@@ -49,3 +49,11 @@ def test_three_seeds_give_an_interval_and_a_verdict_fewer_give_the_number_only()
     mean, low, high = drift_interval([0.1, 0.3, math.nan])
     assert mean == pytest.approx(0.2) and math.isnan(low) and drift_verdict(mean, low, high) == ""
     assert format_drift(mean, low, high) == "+0.20 (< 3 seeds)" and format_drift(*drift_interval([])) == "–"
+
+
+def test_a_negligible_normalised_drift_is_flat_even_with_a_tight_interval():
+    mean, low, high = drift_interval([-0.011, -0.010, -0.009], reps=200)
+    assert drift_verdict(mean, low, high) == "falling"  # raw returns: no common unit, no tolerance
+    assert drift_verdict(mean, low, high, negligible=0.02) == "flat"
+    assert format_drift(mean, low, high, negligible=0.02).endswith("flat")
+    assert drift_verdict(*drift_interval([0.05, 0.06, 0.07], reps=200), negligible=0.02) == "rising"

@@ -27,7 +27,7 @@ import numpy as np
 
 from bati.experiments.probes import read_probe
 from bati.experiments.specs import MUJOCO, get_spec, plan_experiment
-from bati.report.convergence import drift_interval, drift_verdict, run_drift
+from bati.report.convergence import NEGLIGIBLE, drift_interval, drift_verdict, run_drift
 from bati.report.runs import RunResult, jobs_wall_time
 from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval, require_rliable
 
@@ -76,6 +76,8 @@ class Record:
     """What shares its wall time: the seeds of one training job (one setting and method), or one probe."""
     drift: float = math.nan
     """The run's p_test drift over its scored window (bati.report.convergence): ~0 when converged."""
+    normalised: bool = False
+    """Whether its scores (and drift) are normalised: the run records reference returns."""
 
     @property
     def change(self) -> float:
@@ -108,7 +110,7 @@ def gather(spec_name: str, source: Source, root: Path) -> list[Record]:
         drift = run_drift(run)  # a probe evaluates its cell's training run: the cell's drift
         for p_test, p_train, length, commit, wall, job in results:
             records.append(Record(c.method, c.family, c.noise, c.seed, score(p_test), score(p_train), p_test,
-                                  length, commit, run.device, wall or 0.0, job, drift))
+                                  length, commit, run.device, wall or 0.0, job, drift, bool(run.reference_returns)))
     return records
 
 
@@ -395,7 +397,8 @@ def convergence(records: list[Record], methods: tuple[str, ...]) -> tuple[list[s
         if len(drifts) < MIN_SEEDS:
             continue
         mean, low, high = drift_interval(list(drifts.values()), reps=REPS)
-        verdict = drift_verdict(mean, low, high)
+        negligible = NEGLIGIBLE if all(r.normalised for r in records if r.method == method) else 0.0
+        verdict = drift_verdict(mean, low, high, negligible)
         if verdict == "flat":
             flat += 1
         elif verdict:

@@ -24,7 +24,7 @@ import numpy as np
 
 from bati.errors import BatiError
 from bati.io import atomic_write_text, make_dirs
-from bati.report.convergence import drift_interval, format_drift, run_drift
+from bati.report.convergence import NEGLIGIBLE, drift_interval, format_drift, run_drift
 from bati.report.curves import save_figure
 from bati.report.held_out import HELD_OUT_COLUMNS, held_out_markdown, held_out_rows, plot_held_out
 from bati.report.runs import RunResult, find_eval_files, load_runs
@@ -376,7 +376,7 @@ def table_markdown(group: Group, rows: list[dict], title: str) -> str:
                          f"{r[col]:.2f} [{r[f'{col}_low']:.2f}, {r[f'{col}_high']:.2f}]")
         if has_drift:
             cells.append(format_drift(r["p_test_drift"], r["p_test_drift_low"], r["p_test_drift_high"],
-                                      2 if norm else rd))
+                                      2 if norm else rd, NEGLIGIBLE if norm else 0.0))
         if has_notes:
             cells.append(r["notes"])
         lines.append("| " + " | ".join(cells) + " |")

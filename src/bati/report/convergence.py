@@ -5,8 +5,9 @@ evaluation every 10k, steps 60k-100k). If the run had converged, more steps woul
 would not move inside that window either. The drift is the change across the window of the least-squares line
 through those evaluations: slope x (last step - first step), in the units of the score (normalised where the run
 records reference returns). Over a method's seeds, the mean drift with its 95% stratified-bootstrap interval
-(rliable) says "still rising" or "still falling" when the interval excludes 0, "flat" when it holds 0 (with
-fewer than `MIN_SEEDS` seeds: the number only). Flat is not proof of convergence (a slow climb hides in noisy
+(rliable) says "still rising" or "still falling" when the interval excludes 0, "flat" when it holds 0 or, for
+normalised scores, when the drift is negligible (under `NEGLIGIBLE`) (with fewer than `MIN_SEEDS` seeds: the
+number only). Flat is not proof of convergence (a slow climb hides in noisy
 evaluations: read the interval's width), but rising is proof that it is not.
 """
 
@@ -23,6 +24,9 @@ MIN_SEEDS = 3
 """Seeds below which no interval (and no verdict) is given."""
 MIN_POINTS = 3
 """Evaluations a window needs for a line through them to say anything."""
+NEGLIGIBLE = 0.02
+"""A normalised drift smaller than this (2% of the experts' margin over random, across the window) is flat
+whatever its interval: tight intervals would otherwise call a converged run 'falling' by 0.01."""
 
 
 def window_drift(steps, scores) -> float:
@@ -57,17 +61,20 @@ def drift_interval(drifts, reps: int = BOOTSTRAP_REPS, seed: int = 0) -> tuple[f
     return mean_interval(drifts, reps, seed)
 
 
-def drift_verdict(mean: float, low: float, high: float) -> str:
-    """'rising' / 'falling' when the interval excludes 0, 'flat' when it holds it, '' without an interval."""
+def drift_verdict(mean: float, low: float, high: float, negligible: float = 0.0) -> str:
+    """'rising' / 'falling' when the interval excludes 0 and the mean is at least `negligible` (NEGLIGIBLE for
+    normalised scores; raw returns have no common unit), 'flat' otherwise, '' without an interval."""
     if not (math.isfinite(low) and math.isfinite(high)):
         return ""
+    if abs(mean) < negligible:
+        return "flat"
     return "rising" if low > 0 else "falling" if high < 0 else "flat"
 
 
-def format_drift(mean: float, low: float, high: float, digits: int = 2) -> str:
-    """'+0.03 [-0.02, +0.08] flat', or '+0.03 (n < 3)' without an interval, or '–' without a drift."""
+def format_drift(mean: float, low: float, high: float, digits: int = 2, negligible: float = 0.0) -> str:
+    """'+0.03 [-0.02, +0.08] flat', or '+0.03 (< 3 seeds)' without an interval, or '–' without a drift."""
     if not math.isfinite(mean):
         return "–"
     if not (math.isfinite(low) and math.isfinite(high)):
         return f"{mean:+.{digits}f} (< {MIN_SEEDS} seeds)"
-    return f"{mean:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}] {drift_verdict(mean, low, high)}"
+    return f"{mean:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}] {drift_verdict(mean, low, high, negligible)}"
