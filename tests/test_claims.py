@@ -151,3 +151,10 @@ def test_a_compared_cell_still_rising_over_its_scored_window_is_named_beside_the
     assert "still moving: focal on AntDir rising" in claims_module.every_scale(findings, c2.claim)
     c3 = next(f for f in findings if f.claim.name == "C3")  # compares BATI with Recon only: FOCAL is not its
     assert c3.moving == [] and claims_module.converged_text(c3, short=True) == "yes (1 of 1 cell flat)"
+
+
+def test_a_family_where_only_the_oracle_ran_does_not_count_as_tested(tmp_path):
+    write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW),
+                                        ("oracle", "HalfCheetahVel"): (HIGH, HIGH)})
+    c1 = next(f for f in decide(tmp_path) if f.claim.name == "C1" and f.source is CPU)
+    assert c1.families == ["AntDir"]

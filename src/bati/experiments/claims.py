@@ -356,7 +356,7 @@ class Finding:
     verdict: str
     runs: int
     families: list[str]
-    """The claim's families with runs at this scale."""
+    """The claim's families with runs of the methods it compares at this scale."""
     commits: list[str]
     devices: list[str]
     wall_time_s: float
@@ -379,7 +379,8 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
             lines, verdict = claim.test(records, claim.families)
             moving, flat = convergence(records, claim.methods)
             findings.append(Finding(claim, source, lines, verdict, len(records),
-                                    [f for f in claim.families if any(r.family == f for r in records)],
+                                    [f for f in claim.families  # where a compared method ran, not the Oracle alone
+                                     if any(r.family == f and r.method in claim.methods for r in records)],
                                     sorted({r.commit[:12] for r in records if r.commit}),
                                     sorted({r.device for r in records if r.device}),
                                     jobs_wall_time((r.job, r.wall_time_s) for r in records), moving, flat))
