@@ -146,7 +146,7 @@ def test_a_compared_cell_still_rising_over_its_scored_window_is_named_beside_the
         path.write_text(json.dumps(record))
     findings = decide(tmp_path)
     c2 = next(f for f in findings if f.claim.name == "C2" and f.source is CPU)
-    assert c2.flat == 1 and c2.moving == ["focal on AntDir rising (+0.40 [+0.40, +0.40])"]
+    assert c2.flat == 1 and c2.moving == [("focal on AntDir rising", "+0.40 [+0.40, +0.40]")]
     assert claims_module.converged_text(c2, short=True) == "no: 1 of 2 cells still moving (focal on AntDir rising)"
     assert "still moving: focal on AntDir rising" in claims_module.every_scale(findings, c2.claim)
     c3 = next(f for f in findings if f.claim.name == "C3")  # compares BATI with Recon only: FOCAL is not its

@@ -360,8 +360,9 @@ class Finding:
     commits: list[str]
     devices: list[str]
     wall_time_s: float
-    moving: list[str]
-    """The compared cells (method, family, eps) whose p_test still drifts over the scored window."""
+    moving: list[tuple[str, str]]
+    """The compared cells whose p_test still drifts over the scored window: ("focal on AntDir rising", its drift
+    with the interval)."""
     flat: int
     """The compared cells with >= MIN_SEEDS seeds whose drift interval holds 0."""
 
@@ -387,9 +388,9 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
     return findings
 
 
-def convergence(records: list[Record], methods: tuple[str, ...]) -> tuple[list[str], int]:
+def convergence(records: list[Record], methods: tuple[str, ...]) -> tuple[list[tuple[str, str]], int]:
     """Of the cells (method, family, eps) of `methods` with >= MIN_SEEDS seeds: those whose p_test still drifts
-    over the scored window (its 95% interval excludes 0), as text, and how many are flat."""
+    over the scored window (its 95% interval excludes 0), as (cell, drift) text, and how many are flat."""
     moving, flat = [], 0
     cells = sorted({(r.method, r.family, r.noise) for r in records if r.method in methods},
                    key=lambda cell: (methods.index(cell[0]), cell[1:]))
@@ -404,7 +405,7 @@ def convergence(records: list[Record], methods: tuple[str, ...]) -> tuple[list[s
             flat += 1
         elif verdict:
             eps = f" eps {noise:g}" if len({r.noise for r in records}) > 1 else ""
-            moving.append(f"{method} on {family}{eps} {verdict} ({mean:+.2f} [{low:+.2f}, {high:+.2f}])")
+            moving.append((f"{method} on {family}{eps} {verdict}", f"{mean:+.2f} [{low:+.2f}, {high:+.2f}]"))
     return moving, flat
 
 
@@ -435,7 +436,7 @@ def every_scale(findings: list[Finding], claim: Claim) -> str:
                                       if len(families) < len(claim.families) else "")
 
     def moving(finding: Finding) -> str:
-        return f"; still moving: {', '.join(m.split(' (')[0] for m in finding.moving)}" if finding.moving else ""
+        return f"; still moving: {', '.join(cell for cell, _ in finding.moving)}" if finding.moving else ""
 
     return "; ".join(f"{_scale_name(f)}: {f.verdict} ({coverage(f.families)}{moving(f)})"
                      for f in _tested(findings, claim)) or "-"
@@ -450,8 +451,9 @@ def converged_text(finding: Finding, short: bool = False) -> str:
         plural = "s" if cells > 1 else ""
         return f"yes ({cells} of {cells} cell{plural} flat)" if short else f"yes: {cells} compared cell{plural}, flat"
     if short:
-        return f"no: {len(finding.moving)} of {cells} cells still moving ({', '.join(m.split(' (')[0] for m in finding.moving)})"
-    return f"no: {finding.flat} of {cells} compared cells flat; still moving: {'; '.join(finding.moving)}"
+        return f"no: {len(finding.moving)} of {cells} cells still moving ({', '.join(c for c, _ in finding.moving)})"
+    moving = "; ".join(f"{cell} ({drift})" for cell, drift in finding.moving)
+    return f"no: {finding.flat} of {cells} compared cells flat; still moving: {moving}"
 
 
 def claims_markdown(findings: list[Finding], command: str) -> str:
@@ -464,7 +466,8 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
              "excludes 1/2. The verdict of a claim is the one at the largest scale that tests it. Converged: "
              "the p_test drift over the scored window (the change across the evaluations a run's number averages, "
              "of the least-squares line through them; mean over seeds with its 95% interval) of every compared "
-             f"cell with >= {MIN_SEEDS} seeds holds 0; a cell whose interval excludes 0 is still rising or falling, "
+             f"cell with >= {MIN_SEEDS} seeds holds 0 (or is under {NEGLIGIBLE}); a cell whose interval excludes 0 "
+             "is still rising or falling, "
              "and a verdict that rests on it may change with more steps.", "",
              "| claim | paper | verdict | at scale | converged there | every tested scale |",
              "| --- | --- | --- | --- | --- | --- |"]
