@@ -316,6 +316,8 @@ def test_tiny_experiment_end_to_end(tmp_path, name):
                 source = ("self" if probe.self_collect_every is not None else
                           "mixed" if probe.context_mix is not None else "p_test")
                 assert len(saved[f"{source}_returns"]) == 2
+    for cell in plan.cells:  # main and noise keep the likelihood split of each BATI run (tiny_spec: bati only)
+        assert (cell.config.out_dir / "likelihood.json").exists() == spec.likelihood_split
     stale = out / name / "curves-AntDir-quick-eps1-12000steps.png"  # an earlier report's figure of another family
     stale.parent.mkdir(parents=True, exist_ok=True)
     stale.write_bytes(b"png")
@@ -330,6 +332,7 @@ def test_tiny_experiment_end_to_end(tmp_path, name):
         assert "**p train auroc**" in markdown and "train [0, 1.5), test [1.5, 3.1)" in markdown
     if name == "self-collected":  # self-collected returns per probe, the given-context ones beside them
         assert "**self return**" in markdown and "PointGoal self10x2" in markdown and "PointGoal final" in markdown
+    assert ("**Which term of Eq. 8 picks the task**" in markdown) == spec.likelihood_split
     if name == "state-term":  # BATI-auto's calibrated weight is reported beside its returns
         assert "**state weight**" in markdown and "p test inference error" in markdown
     if spec.paper:
@@ -337,7 +340,7 @@ def test_tiny_experiment_end_to_end(tmp_path, name):
         assert "Paper rows without a run here" in markdown or "/ " in markdown
     # a rerun finds everything done: nothing is trained or probed again
     again = run_experiment(plan, out, data_root=data_root, show_progress=False)
-    assert again.sweep.count("skipped") == len(plan.cells)
+    assert again.sweep.count("skipped") == len(plan.cells) and again.probes_done == 0
 
 
 def test_a_probe_saved_before_a_new_probe_setting_is_read_back(tmp_path):

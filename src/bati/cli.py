@@ -304,15 +304,17 @@ class Run(MainJob):
 
 @dataclass
 class Likelihood:
-    """For a BATI run: task-inference error of Eq. 8 with the full, reward-only and state-only NLL."""
+    """For a BATI run: task-inference error of Eq. 8 with the full, reward-only and state-only NLL (also
+    written to RUN_DIR/likelihood.json)."""
 
     run_dir: Path
     context_length: int = 200
 
     def run(self) -> None:
-        from bati.report.likelihood import likelihood_split, likelihood_split_markdown
+        from bati.report.likelihood import LIKELIHOOD_FILE, likelihood_split_markdown, save_likelihood_split
 
-        console.print(Markdown(likelihood_split_markdown(likelihood_split(self.run_dir, self.context_length))))
+        console.print(Markdown(likelihood_split_markdown(save_likelihood_split(self.run_dir, self.context_length))))
+        console.print(f"saved in {self.run_dir / LIKELIHOOD_FILE}", soft_wrap=True)
 
 
 @dataclass

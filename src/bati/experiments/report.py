@@ -27,6 +27,7 @@ from bati.report.build import (_csv_text, group_runs, group_title, method_order,
                                plot_profile)
 from bati.report.build import table_markdown as group_table
 from bati.report.curves import save_figure
+from bati.report.likelihood import read_likelihood_split
 from bati.report.runs import RunResult, jobs_wall_time
 from bati.report.tables import METHOD_LABELS
 
@@ -69,8 +70,10 @@ def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
                 "wall_time_s": run.wall_time_s}
         probes = plan.probes.get(cell.id, ())
         if not probes:
+            split = read_likelihood_split(c.out_dir) if plan.spec.likelihood_split else None
             records.append({**base, "p_test_return": run.p_test_return, "p_train_return": run.p_train_return,
-                            "p_test_inference_error": run.p_test_inference_error, **raw.get("diagnostics", {})})
+                            "p_test_inference_error": run.p_test_inference_error, **raw.get("diagnostics", {}),
+                            **{f"likelihood_{k}": split[k] for k in LIKELIHOOD_COLUMNS if split is not None}})
             continue
         for probe in probes:
             saved = read_probe(c.out_dir, probe)
@@ -141,6 +144,39 @@ def _fmt(entry: dict) -> str:
     digits = 1 if size >= 10 else 2 if size >= 1 else 3  # returns; errors; KuhnPoker's returns per hand, weights
     text = f"{entry['mean']:.{digits}f}"
     return text + (f" ± {entry['std']:.{digits}f}" if entry["n_seeds"] > 1 else "")
+
+
+# The likelihood split's table (`bati likelihood`, saved per run): column key, heading
+LIKELIHOOD_COLUMNS = {"p_train_full_error": "p_train, full NLL", "p_test_full_error": "p_test, full NLL (BATI)",
+                      "p_test_reward_error": "p_test, reward only (BATI-R)",
+                      "p_test_state_error": "p_test, state only",
+                      "p_test_state_picks_collector": "p_test, state only: share = collector's task"}
+
+
+def likelihood_section(spec: Spec, records: list[dict]) -> tuple[str, list[dict]]:
+    """Which term of Eq. 8 picks the task: one row per (setting, method) with saved splits, the mean ± std over
+    seeds of each column; and the CSV rows (metric `likelihood_<key>`). Empty when no run has a split."""
+    split = [r for r in records if "likelihood_p_test_full_error" in r]
+    if not split:
+        return "", []
+    lines = ["**Which term of Eq. 8 picks the task** (`bati likelihood` on each run's last checkpoint: task-inference "
+             "error of the arg-min over the table means with the full NLL, the reward term alone and the state "
+             "terms alone, one context per test task; and how often the state terms' arg-min is the context "
+             "collector's task, i.e. the state model reads the behaviour)", "",
+             "| " + " | ".join([spec.columns.replace("_", " "), "method", "seeds", *LIKELIHOOD_COLUMNS.values()]) + " |",
+             "|" + "---|" * (3 + len(LIKELIHOOD_COLUMNS))]
+    csv_rows, tables = [], {}
+    for key in LIKELIHOOD_COLUMNS:
+        _, _, entries = table_rows(spec, split, f"likelihood_{key}")
+        tables[key] = {(e["row"], e["column"]): e for e in entries}
+        csv_rows += [{**e, "metric": f"likelihood_{key}"} for e in entries if e["n_seeds"]]
+    for (row, column), first in sorted(tables["p_test_full_error"].items(), key=lambda kv: (_sort_key(kv[0][1]),
+                                                                                           method_order(kv[0][0]))):
+        if not first["n_seeds"]:
+            continue
+        cells = [_fmt(tables[key][(row, column)]) for key in LIKELIHOOD_COLUMNS]
+        lines.append("| " + " | ".join([column, METHOD_LABELS.get(row, row), first["seeds"], *cells]) + " |")
+    return "\n".join(lines) + "\n", csv_rows
 
 
 def table_markdown(spec: Spec, metric: str, rows, columns, entries, title: str) -> str:
@@ -271,6 +307,11 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
         source = f" (paper: {spec.paper.source})" if spec.paper and metric == spec.metric else ""
         sections.append(table_markdown(spec, metric, rows, columns, entries, f"{metric.replace('_', ' ')}{source}"))
         csv_rows += [{**e, "row": e["row"], "column": e["column"], "metric": metric} for e in entries]
+    if spec.likelihood_split:
+        section, rows_of_split = likelihood_section(spec, records)
+        if section:
+            sections.append(section)
+            csv_rows += rows_of_split
     groups = group_runs(runs)
     seeded = [g for g in groups if any(len(g.runs_of(m)) >= 2 for m in g.methods)]
     if spec.metric == "p_test_return" and seeded:  # rliable's IQM and P(BATI > method), per family and setting

@@ -22,6 +22,7 @@ from bati.envs import FAMILY_NAMES, TaskFamily, family_names, get_family
 from bati.errors import BatiError
 from bati.experiments.probes import Probe, run_probe
 from bati.experiments.sweep import Cell, Grid, SweepResult, expand, record_lock, sweep
+from bati.report.likelihood import has_task_table, likelihood_split_due, save_likelihood_split
 from bati.train import check_seeds
 
 SCALES = ("quick", "cpu", "paper")
@@ -91,6 +92,9 @@ class Spec:
     for_family: Callable[[TaskFamily], tuple[Part, ...]] | None = None
     """The spec's parts for a family of your own (registered with `register_family`, docs/extending.md),
     where the experiment transfers to any family; None: only the paper's families."""
+    likelihood_split: bool = False
+    """Keep `bati likelihood`'s split of Eq. 8 (`<run>/likelihood.json`) for each finished run of a likelihood
+    method, and report it: which term of the likelihood picks the task, and whether it picks the collector's."""
 
 
 def _settings(**values) -> tuple[str, ...]:
@@ -129,6 +133,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         claim="BATI has the best p_test return on every family, usually by a large margin; encoders drop on p_test",
         parts=(Part(MUJOCO, MAIN_METHODS),),
         for_family=_main_for,
+        likelihood_split=True,
         paper=PaperTable("Table 4", {
             "oracle": {"AntDir": "58.7", "HalfCheetahVel": "-139.3", "HalfCheetahDir": "291.2",
                        "HopperParam": "290.2", "WalkerParam": "549.2"},
@@ -154,6 +159,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         columns="family_noise",
         figures=("curves", "vs"),
         for_family=_noise_for,
+        likelihood_split=True,
     ),
     Spec(
         name="context-length",
@@ -362,8 +368,8 @@ class ExperimentResult:
 def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
                    backend: str = "local", address: str | None = None, show_progress: bool = True,
                    on_probe: Callable[[str], None] | None = None, locked: bool = False) -> ExperimentResult:
-    """Run the plan's cells that are not finished (one sweep), then the probes of the finished ones,
-    holding the experiment's sweep record all along (a second process on it is refused at once;
+    """Run the plan's cells that are not finished (one sweep), then the probes of the finished ones (and,
+    where the spec keeps it, the likelihood split of their likelihood-method runs), holding the experiment's sweep record all along (a second process on it is refused at once;
     `locked`: the caller holds `record_lock(out_dir, status_file(plan.spec))` already)."""
     if not locked:
         with record_lock(out_dir, status_file(plan.spec)):
@@ -384,6 +390,17 @@ def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"),
                 run_probe(cell.config.out_dir, probe)
                 done += 1
             except Exception as err:  # a failed probe is reported; the others go on
+                errors[label] = f"{type(err).__name__}: {err}"
+        c = cell.config
+        if (plan.spec.likelihood_split and has_task_table(c.method)
+                and likelihood_split_due(c.out_dir, c.steps, c.eval_context_length)):
+            label = f"{cell.label} likelihood"
+            if on_probe is not None:
+                on_probe(label)
+            try:
+                save_likelihood_split(c.out_dir, c.eval_context_length)
+                done += 1
+            except Exception as err:
                 errors[label] = f"{type(err).__name__}: {err}"
     return ExperimentResult(plan, result, done, errors, time.perf_counter() - start)
 
