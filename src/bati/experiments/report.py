@@ -159,10 +159,11 @@ def likelihood_section(spec: Spec, records: list[dict]) -> tuple[str, list[dict]
     split = [r for r in records if "likelihood_p_test_full_error" in r]
     if not split:
         return "", []
-    lines = ["**Which term of Eq. 8 picks the task** (`bati likelihood` on each run's last checkpoint: task-inference "
+    title = ("**Which term of Eq. 8 picks the task** (`bati likelihood` on each run's last checkpoint: task-inference "
              "error of the arg-min over the table means with the full NLL, the reward term alone and the state "
              "terms alone, one context per test task; and how often the state terms' arg-min is the context "
-             "collector's task, i.e. the state model reads the behaviour)", "",
+             "collector's task, i.e. the state model reads the behaviour)")
+    lines = [title, "",
              "| " + " | ".join([spec.columns.replace("_", " "), "method", "seeds", *LIKELIHOOD_COLUMNS.values()]) + " |",
              "|" + "---|" * (3 + len(LIKELIHOOD_COLUMNS))]
     csv_rows, tables = [], {}

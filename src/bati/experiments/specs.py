@@ -400,7 +400,7 @@ def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"),
             try:
                 save_likelihood_split(c.out_dir, c.eval_context_length)
                 done += 1
-            except Exception as err:
+            except Exception as err:  # reported like a failed probe
                 errors[label] = f"{type(err).__name__}: {err}"
     return ExperimentResult(plan, result, done, errors, time.perf_counter() - start)
 

@@ -21,13 +21,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from bati.checkpoints import CHECKPOINT_NAME
 from bati.data import sample_contexts
 from bati.envs import get_family
 from bati.inference import InferenceError, load_run
-from bati.checkpoints import CHECKPOINT_NAME
 from bati.io import atomic_write_json, git_commit, read_run_config
 from bati.methods.dynamics import context_nll_terms
-
 
 LIKELIHOOD_FILE = "likelihood.json"
 SOURCES, TERMS = ("p_train", "p_test"), ("full", "reward", "state")
