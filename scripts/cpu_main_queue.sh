@@ -15,7 +15,8 @@
 # 20-80 min with other work beside (IQL alone ~20 min; CSRO and ER-TRL ~1-1.3 h, Recon and BATI-R ~45 min), so the
 # table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL (issue 28), the AntDir noise ablation's
 # BATI and FOCAL (claim C4, untested at every scale), then phase 1 in two passes over the families: the Oracle (the
-# normaliser), BATI and FOCAL first (claims C1-C2 on five families), ER-TRL's noise cells, then the other methods
+# normaliser), BATI and FOCAL first (claims C1-C2 on five families; BATI-R and BATI-auto are evaluated alongside
+# BATI's run, which is their training too: `bati+bati-r+bati-auto`), ER-TRL's noise cells, then the other methods
 # that the claims compare (BATI's reward-only variant, the paper's baselines, the no-context floor), then the noise
 # ablation's other methods, the FOCAL distance ablation, then
 # phase 2: the others (ER-TRL, BATI-auto, DPT) on every family. WAIT_PID: a running job's process to wait for first
@@ -32,6 +33,7 @@ while [ -n "${WAIT_PID:-}" ] && kill -0 "$WAIT_PID" 2> /dev/null; do sleep 20; d
 stop_at=${STOP_AT:-}
 minutes() {  # a seed's (or, "collect", a family's paper data) estimated minutes
   case $1 in
+    bati+*) echo 70;;  # BATI with BATI-R and BATI-auto evaluated alongside (their training is BATI's)
     oracle|no-context) echo 35;; focal|unicorn) echo 45;; bati|bati-r|bati-auto|recon|dpt) echo 65;;
     csro|er-trl) echo 100;; collect) echo 40;; *) echo 100;;
   esac
@@ -52,20 +54,21 @@ collect() {  # $1 family, the rest: more options
 data_root=${1:-data}
 out_dir=${2:-$(pwd)/results/cpu/experiments}
 seeds=${SEEDS:-"0 1 2"}
-job() {  # $1 experiment, $2 family, $3 method, the rest: more options; one seed at a time
+job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.g. bati+bati-r), the rest: more
+  # options; one seed at a time
   local experiment=$1 family=$2 method=$3; shift 3
   local cells=1; [ "$experiment" = noise ] && cells=2  # a noise seed trains eps 0 and eps / 2 (eps's are main's)
   for seed in $seeds; do
     fits "$method" "$cells" || continue
     echo "=== $family $method seed $seed ($experiment $*) $(date -u)"
-    python -m bati.cli experiment "$experiment" --scale cpu --families "$family" --methods "$method" --seeds "$seed" \
+    python -m bati.cli experiment "$experiment" --scale cpu --families "$family" --methods ${method//+/ } --seeds "$seed" \
       --data-root "$data_root" --workers 1 "$@"
     echo "=== $family $method seed $seed done rc=$? $(date -u)"
   done  # the report over every seed finished so far (a one-seed job reports its seed only)
   python -m bati.cli experiment "$experiment" --scale cpu --report-only --data-root "$data_root" "$@" > /dev/null
 }
 families=${FAMILIES:-"AntDir HalfCheetahVel HalfCheetahDir HopperParam WalkerParam"}
-phase1a=${PHASE1A:-"oracle bati focal"}
+phase1a=${PHASE1A:-"oracle bati+bati-r+bati-auto focal"}
 phase1b=${PHASE1B:-"bati-r csro unicorn recon no-context"}
 phase2=${PHASE2:-"er-trl bati-auto dpt"}
 # Phase 0: jobs a stop interrupted (a cell with a checkpoint and no eval.json) finish first: eps = 1 cells are the

@@ -21,7 +21,8 @@ pytestmark = pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash
 
 
 def run_queue(tmp_path: Path, **env: str) -> tuple[list[tuple[str, str, str, str]], str]:
-    """The (experiment, family, method, seed) of each training command the queue issued, and its output."""
+    """The (experiment, family, method, seed) of each training command the queue issued (several methods of one
+    command joined by +), and its output."""
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir(exist_ok=True)
     stub = bin_dir / "python"
@@ -35,10 +36,11 @@ def run_queue(tmp_path: Path, **env: str) -> tuple[list[tuple[str, str, str, str
                          env=full_env, capture_output=True, text=True, timeout=120, check=True)
     jobs = []
     for line in calls.read_text().splitlines() if calls.exists() else []:
-        match = re.match(r"-m bati\.cli experiment (\S+) --scale cpu --families (\S+) --methods (\S+) --seeds (\d+)",
+        match = re.match(r"-m bati\.cli experiment (\S+) --scale cpu --families (\S+) --methods (.+?) --seeds (\d+)",
                          line)
         if match:
-            jobs.append(match.groups())
+            experiment, family, methods, seed = match.groups()
+            jobs.append((experiment, family, methods.replace(" ", "+"), seed))
     return jobs, out.stdout
 
 
@@ -46,16 +48,17 @@ def test_order_claims_first(tmp_path):
     jobs, _ = run_queue(tmp_path)
     assert jobs[:7] == [("main", "AntDir", "csro", "0"), ("main", "AntDir", "er-trl", "0"),
                         ("noise", "AntDir", "bati", "0"), ("noise", "AntDir", "focal", "0"),
-                        ("main", "AntDir", "oracle", "0"), ("main", "AntDir", "bati", "0"),
+                        ("main", "AntDir", "oracle", "0"), ("main", "AntDir", "bati+bati-r+bati-auto", "0"),
                         ("main", "AntDir", "focal", "0")]
     # phase 1's first pass (the Oracle, BATI, FOCAL) on every family before ER-TRL's noise cells and the rest
     first_pass = [(f, m) for _, f, m, _ in jobs[4:19]]
     assert first_pass == [(f, m) for f in ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")
-                          for m in ("oracle", "bati", "focal")]
+                          for m in ("oracle", "bati+bati-r+bati-auto", "focal")]
     assert jobs[19] == ("noise", "AntDir", "er-trl", "0") and jobs[20] == ("main", "AntDir", "bati-r", "0")
     families = list(dict.fromkeys(family for experiment, family, _, _ in jobs if experiment == "main"))
     assert families == ["AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam"]
     assert ("main", "WalkerParam", "dpt", "0") == jobs[-1]  # phase 2 last
+    # BATI's job on a family evaluates BATI-R and BATI-auto alongside (one training): the three in one command
 
 
 def test_stop_at_skips_what_would_not_finish(tmp_path):

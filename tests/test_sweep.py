@@ -32,6 +32,22 @@ def test_grid_expands_to_every_cell_with_its_own_directory(tmp_path):
     assert cell.config.out_dir.name == "recon-seed1" and cell.config.out_dir.parent.name.startswith("quick-eps0.5-")
 
 
+def test_a_method_that_trains_as_another_joins_its_job_of_the_same_setting_and_seeds(tmp_path):
+    def plan(*grids):
+        jobs = make_jobs([c for g in grids for c in expand(g, tmp_path)])
+        return sorted((j.config.method, j.seeds, tuple(dict.fromkeys(c.config.method for c in j.alongside))) for j in jobs)
+
+    assert plan(Grid(methods=("bati", "bati-r", "bati-auto", "recon"), seeds=(0, 1))) == [
+        ("bati", (0, 1), ("bati-r", "bati-auto")), ("recon", (0, 1), ())]
+    # without its twin's job (e.g. bati finished), or with other seeds or settings, it trains on its own
+    assert plan(Grid(methods=("bati-r",))) == [("bati-r", (0,), ())]
+    assert plan(Grid(methods=("bati",), seeds=(0, 1)), Grid(methods=("bati-r",), seeds=(0,))) == [
+        ("bati", (0, 1), ()), ("bati-r", (0,), ())]
+    assert plan(Grid(methods=("bati",)), Grid(methods=("bati-r",), settings=("steps=40",))) == [
+        ("bati", (0,), ()), ("bati-r", (0,), ())]
+    assert len(make_jobs(expand(Grid(methods=("bati", "bati-r")), tmp_path), share_training=False)) == 2
+
+
 def test_default_noise_and_all_methods_resolve_like_explicit_ones(tmp_path):
     from bati.methods import METHODS
 
@@ -136,10 +152,10 @@ def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(
     out = tmp_path / "sweep"
     real = sweep_module.run_job
 
-    def flaky(config, seeds, runs_dir, references=None):
+    def flaky(config, seeds, runs_dir, references=None, also=()):
         if config.method == "recon":
             raise RuntimeError("disk on fire")
-        return real(config, seeds, runs_dir, references)
+        return real(config, seeds, runs_dir, references, also)
 
     monkeypatch.setattr(sweep_module, "run_job", flaky)
     result = sweep(grid, out, show_progress=False)
@@ -149,10 +165,24 @@ def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(
     assert failed[0]["label"] == "PointGoal/recon/seed0" and failed[0]["error"] == "RuntimeError: disk on fire"
 
     ran = []
-    monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None:
-                        ran.append(config.method) or real(config, seeds, runs_dir, references))
+    monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None, also=():
+                        ran.append(config.method) or real(config, seeds, runs_dir, references, also))
     rerun = sweep(grid, out, show_progress=False)
     assert ran == ["recon"] and rerun.count("done") == 1 and rerun.count("skipped") == 1
+
+
+def test_cells_evaluated_alongside_are_done_without_training_again(tmp_path, local, monkeypatch):
+    grid = Grid(methods=("bati", "bati-r", "no-context"), seeds=(0,), settings=TINY)
+    out = tmp_path / "sweep"
+    real, ran = sweep_module.run_job, []
+    monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None, also=():
+                        ran.append((config.method, also)) or real(config, seeds, runs_dir, references, also))
+    result = sweep(grid, out, show_progress=False)
+    assert sorted(ran) == [("bati", ("bati-r",)), ("no-context", ())]
+    assert result.count("done") == 3 and _statuses(out) == ["done"] * 3
+    saved = {c.config.method: json.loads((c.config.out_dir / "eval.json").read_text()) for c in expand(grid, out)}
+    assert saved["bati-r"]["trained_with"] == "bati-seed0" and saved["bati-r"]["method"] == "bati-r"
+    assert sweep(grid, out, show_progress=False).count("skipped") == 3
 
 
 def test_the_reference_returns_are_computed_once_per_collection(tmp_path, local, monkeypatch):

@@ -440,3 +440,59 @@ def test_checkpoints_of_the_layout_before_the_method_train_state_load_with_the_s
     restored = load_checkpoint(tmp_path / "old.msgpack", trainer.init(jax.random.PRNGKey(5)))
     same = jax.tree_util.tree_map(lambda a, b: bool(np.array_equal(a, b)), restored, state)
     assert all(jax.tree_util.tree_leaves(same))
+
+
+def _evals(out):
+    return [json.loads(line) for line in (out / "eval.jsonl").read_text().splitlines()]
+
+
+def test_methods_evaluated_alongside_get_the_runs_they_would_have_trained_alone(tmp_path, point_data):
+    # bati-r and bati-auto train exactly as bati: evaluated alongside its run, each gets its own run directory
+    # with the numbers of a run trained alone (same states, same evaluation keys), for a tenth of the cost
+    runs = tmp_path / "runs"
+    together = train_seeds(_config(tmp_path, "unused"), (0,), show_progress=False, runs_dir=runs,
+                           also=("bati-r", "bati-auto"))
+    for method in ("bati-r", "bati-auto"):
+        alone = train(_config(tmp_path / "alone", f"{method}-seed0", method=method), show_progress=False)
+        out = runs / f"{method}-seed0"
+        assert _evals(out) == _evals(tmp_path / "alone" / f"{method}-seed0")
+        assert (out / "metrics.jsonl").read_text() == (runs / "bati-seed0" / "metrics.jsonl").read_text()
+        assert (out / "checkpoint.msgpack").read_bytes() == (tmp_path / "alone" / f"{method}-seed0" /
+                                                             "checkpoint.msgpack").read_bytes()
+        saved = json.loads((out / "eval.json").read_text())
+        assert saved["trained_with"] == "bati-seed0"
+        assert {**saved["config"], "out_dir": None} == {**alone["config"], "out_dir": None}
+        assert saved["p_test_return"] == alone["p_test_return"] and saved["method"] == method
+    assert "state_weight" in _evals(runs / "bati-auto-seed0")[-1]  # BATI-auto calibrated, as alone
+    assert together[0]["method"] == "bati"
+
+
+def test_a_method_evaluated_alongside_follows_a_resumed_run_and_one_of_its_own_is_left_alone(tmp_path, point_data,
+                                                                                             monkeypatch):
+    runs = tmp_path / "runs"
+    with monkeypatch.context() as patch:
+        _killed_at_second_checkpoint(patch)  # stops with a step-10 checkpoint and step-20 logs
+        with pytest.raises(KeyboardInterrupt):
+            train_seeds(_config(tmp_path, "unused"), (0,), show_progress=False, runs_dir=runs, also=("bati-r",))
+    assert [e["step"] for e in _evals(runs / "bati-r-seed0")] == [10, 20]
+    train_seeds(_config(tmp_path, "unused"), (0,), show_progress=False, runs_dir=runs, also=("bati-r",))
+    alone = tmp_path / "alone" / "bati-r-seed0"
+    train(_config(tmp_path / "alone", "bati-r-seed0", method="bati-r"), show_progress=False)
+    assert _evals(runs / "bati-r-seed0") == _evals(alone)  # the step-20 evaluation redone once, from step 10
+    # a run of its own (here: finished) is not touched by a later run evaluated alongside
+    before = (alone / "eval.json").read_bytes()
+    train_seeds(_config(tmp_path, "unused"), (0,), show_progress=False, runs_dir=tmp_path / "alone", also=("bati-r",))
+    assert (alone / "eval.json").read_bytes() == before
+
+
+@pytest.mark.parametrize("also, message", [
+    (("focal",), "'focal' does not train exactly as 'bati'"),
+    (("bati",), "'bati' does not train exactly as 'bati'"),
+    (("bogus",), "unknown method 'bogus'"),
+])
+def test_methods_that_train_otherwise_cannot_be_evaluated_alongside(tmp_path, also, message):
+    with pytest.raises(ValueError, match=message):
+        train_seeds(_config(tmp_path, "x"), (0,), show_progress=False, runs_dir=tmp_path / "r", also=also)
+    assert not (tmp_path / "r").exists()
+    with pytest.raises(ValueError, match="named <method>-seed<seed>"):
+        train_seeds(_config(tmp_path, "x"), (0,), show_progress=False, also=("bati-r",))

@@ -4,6 +4,12 @@ The algorithm itself is bati.trainer (pure JAX, no files). This module is its ed
 once (family, data, expert), claims and checks the run directories, brings resumed seeds level, writes
 metrics.jsonl, eval.jsonl, checkpoint.msgpack (bati.checkpoints) and eval.json, and opens a finished run
 again (`open_run`) for inference and probes.
+
+Methods that train exactly as another and differ only at test time (bati-r and bati-auto train as bati,
+`TaskInference.trains_as`) can be evaluated alongside its run (`also`): at every evaluation, the same states
+with the same keys are evaluated with their inference too, into their own run directories beside it
+(`<method>-seed<s>`), which end up as those of a run trained alone: the same config.json, metrics.jsonl
+(copied), eval.jsonl, checkpoint and eval.json (plus `trained_with`, the sibling that trained).
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ from bati.experts import load as load_expert
 from bati.io import (
     LOCK_NAME,
     append_jsonl,
+    atomic_write_bytes,
     atomic_write_json,
     atomic_write_text,
     check_directory,
@@ -58,7 +65,7 @@ def train(config: TrainConfig, show_progress: bool = True) -> dict:
 
 
 def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool = True,
-                runs_dir: Path | None = None, references: dict | None = None) -> list[dict]:
+                runs_dir: Path | None = None, references: dict | None = None, also: tuple[str, ...] = ()) -> list[dict]:
     """Train (or resume) one run per seed of one config as one compiled program vmapped over seeds.
 
     Each seed has its own run directory (`runs_dir/<method>-seed<s>`, default: the config's default
@@ -67,20 +74,66 @@ def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool
     steps are first brought level (the ones behind advance alone), then go on together.
     Returns the runs' summaries (also in each eval.json), in the order of `seeds`. `references`: the
     collection's random and expert returns when the caller has them (`bati run` computes them once for all
-    its methods); by default they are computed here.
+    its methods); by default they are computed here. `also`: methods that train exactly as this one, evaluated
+    alongside each run into `<method>-seed<s>` beside it (see the module docstring); one that is finished, has
+    a checkpoint of its own or has evaluations the run does not match is left alone (it trains on its own).
     """
     seeds = check_seeds(seeds)
     if len(seeds) > 1 and config.out_dir is not None and runs_dir is None:
         raise ValueError("several seeds need one directory each: give runs_dir (the parent), not out_dir")
+    also = _check_also(config, also)
     configs = [replace(config, seed=s, out_dir=(runs_dir / f"{config.method}-seed{s}") if runs_dir else
                        config.out_dir).resolved() for s in seeds]
-    _check_paths(configs)
+    alongside = [[_alongside_config(c, method) for method in also] for c in configs]
+    _check_paths(configs + [a for group in alongside for a in group])
     with contextlib.ExitStack() as claimed:
-        for c in configs:  # claim the run directories (or refuse them) before any work
+        for c in configs + [a for group in alongside for a in group]:  # claim the run directories (or refuse them)
             claimed.enter_context(hold_lock(c.out_dir / LOCK_NAME, f"the run directory {c.out_dir}"))
             claimed.enter_context(_forgotten_unless_started(c.out_dir))
             _check_run_dir(c.out_dir, c)
-        return _train_claimed(configs, show_progress, references)
+        return _train_claimed(configs, show_progress, references, alongside)
+
+
+def _check_also(config: TrainConfig, also) -> tuple[str, ...]:
+    """The methods to evaluate alongside `config`'s runs, or ValueError (one line) for one that trains otherwise."""
+    from bati.methods import METHODS, training_of
+
+    also = tuple(dict.fromkeys(also))
+    for method in also:
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r} to evaluate alongside; choose from: {', '.join(METHODS)}")
+        if method == config.method or training_of(method) != training_of(config.method):
+            raise ValueError(f"{method!r} does not train exactly as {config.method!r}, so it cannot be evaluated "
+                             "alongside it (methods that share a training: bati, bati-r, bati-auto)")
+    if also and config.datasets:
+        raise ValueError("evaluating methods alongside a run needs a family's p_train and p_test contexts, not your "
+                         "own datasets: train each method on its own")
+    return also
+
+
+def _alongside_config(config: TrainConfig, method: str) -> TrainConfig:
+    """The config of `method` evaluated alongside the run of `config`: its sibling run directory."""
+    if config.out_dir.name != f"{config.method}-seed{config.seed}":
+        raise ValueError(f"evaluating methods alongside a run needs the sweep's run directories, named "
+                         f"<method>-seed<seed>, not {config.out_dir.name!r}")
+    return replace(config, method=method, out_dir=config.out_dir.parent / f"{method}-seed{config.seed}").resolved()
+
+
+def _follows(run: _SeedRun, companion: TrainConfig) -> bool:
+    """Whether `companion` is evaluated alongside `run` from here: not finished, no checkpoint of its own, and
+    exactly the run's evaluations so far (none for a fresh run); its records after the run's step are dropped."""
+    out = companion.out_dir
+    if (out / "eval.json").exists() or (out / CHECKPOINT_NAME).exists():
+        return False
+
+    def steps(directory: Path) -> list[int]:
+        path = directory / "eval.jsonl"
+        return [r["step"] for r in read_jsonl(path, require=("step",))] if path.exists() else []
+
+    if [s for s in steps(out) if s <= run.step] != steps(run.out):
+        return False
+    _drop_records_after(out, run.step)
+    return True
 
 
 def _check_paths(configs: list[TrainConfig]) -> None:
@@ -196,7 +249,8 @@ class RunInputs:
         return Trainer(self.config, self.data, self.family, self.expert)
 
 
-def _train_claimed(configs: list[TrainConfig], show_progress: bool, references: dict | None) -> list[dict]:
+def _train_claimed(configs: list[TrainConfig], show_progress: bool, references: dict | None,
+                   alongside: list[list[TrainConfig]]) -> list[dict]:
     """train_seeds once its run directories are checked, claimed and locked."""
     config, seeds = configs[0], [c.seed for c in configs]
     inputs = RunInputs.resolve(config, show_progress)
@@ -209,6 +263,11 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool, references: 
         evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length, family=inputs.family,
                               workers=config.eval_workers)
     runs = [_SeedRun.open(c, trainer) for c in configs]
+    for run, group in zip(runs, alongside):
+        run.alongside = [a for a in group if _follows(run, a)]
+    companions = {a.method: Evaluator(replace(inputs, config=a).trainer().method, trainer.iql, data,
+                                      config.eval_context_length, family=inputs.family, workers=config.eval_workers)
+                  for run in runs for a in run.alongside}
     start = time.perf_counter()
     progress = Progress(
         TextColumn(f"[bold]{config.method} on {config.family}" + (f" x{len(seeds)} seeds" if len(seeds) > 1 else "")),
@@ -221,9 +280,11 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool, references: 
             while (behind := min(r.step for r in runs)) < config.steps:
                 group = [r for r in runs if r.step == behind]
                 until = min([r.step for r in runs if r.step > behind] + [config.steps])
-                _advance(trainer, evaluator, data, group, until, start, progress, bar)
+                _advance(trainer, evaluator, data, group, until, start, progress, bar, companions)
         finally:
             evaluator.close()
+            for companion in companions.values():
+                companion.close()
             for run in runs:
                 for sink in run.sinks:
                     sink.close()
@@ -240,6 +301,14 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool, references: 
         summary = {**summarize_run(run.out), "reference_returns": references, **session, "data": recorded}
         atomic_write_json(run.out / "eval.json", summary)
         summaries.append(summary)
+        for companion in run.alongside:  # the run's training is theirs: its logs and checkpoint, their evaluations
+            out = companion.out_dir
+            atomic_write_text(out / "metrics.jsonl", (run.out / "metrics.jsonl").read_text())
+            atomic_write_bytes(out / CHECKPOINT_NAME, (run.out / CHECKPOINT_NAME).read_bytes())
+            atomic_write_json(out / "eval.json", {
+                **summarize_run(out), "reference_returns": references, **session, "data": recorded,
+                "wall_time_s": round(run.alongside_seconds.get(companion.method, 0.0), 2),
+                "trained_with": run.out.name})
     return summaries
 
 
@@ -260,6 +329,10 @@ class _SeedRun:
     base_key: jax.Array
     sinks: list = field(default_factory=list)
     """Optional mirrors of the JSONL logs (TensorBoard, W&B: `--log-to`)."""
+    alongside: list[TrainConfig] = field(default_factory=list)
+    """Runs of methods evaluated alongside this one (`train_seeds(..., also=...)`)."""
+    alongside_seconds: dict[str, float] = field(default_factory=dict)
+    """Wall time of each one's evaluations (its whole cost: the training is this run's)."""
 
     @property
     def out(self) -> Path:
@@ -288,9 +361,10 @@ boundary gives the same numbers (step t's key is fold_in(key, t)), so this chang
 
 
 def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun], until: int, start: float,
-             progress, bar) -> None:
+             progress, bar, companions: dict[str, Evaluator] | None = None) -> None:
     """Train `runs` (all at the same step) together up to step `until`: chunks of log_every steps,
-    vmapped over the runs when there are several, with their logs, evaluations and checkpoints."""
+    vmapped over the runs when there are several, with their logs, evaluations and checkpoints; `companions`:
+    the evaluator of each method evaluated alongside some of the runs."""
     c = runs[0].config
     step = runs[0].step
     last_checkpoint = time.monotonic()
@@ -334,6 +408,21 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
                 append_jsonl(run.out / "eval.jsonl", {"step": step, **result.summary()})
                 for sink in run.sinks:
                     sink.log(step, result.summary(), "eval")
+            for method, companion in (companions or {}).items():  # the same states and keys, their inference
+                members = [j for j, run in enumerate(runs) if any(a.method == method for a in run.alongside)]
+                if not members:
+                    continue
+                began = time.perf_counter()
+                picked = jnp.asarray(members)
+                states_of = stacked() if len(members) == len(runs) else \
+                    jax.tree_util.tree_map(lambda x, picked=picked: x[picked], stacked())
+                outcomes = companion.evaluate_runs(states_of, keys[picked],
+                                                   [runs[j].config.seed * 7919 + step for j in members])
+                for j, result in zip(members, outcomes):
+                    out = next(a.out_dir for a in runs[j].alongside if a.method == method)
+                    append_jsonl(out / "eval.jsonl", {"step": step, **result.summary()})
+                    spent = runs[j].alongside_seconds
+                    spent[method] = spent.get(method, 0.0) + (time.perf_counter() - began) / len(members)
             progress.update(bar, status=evaluator.status(results))
         if (step % c.checkpoint_every == 0 or step == c.steps
                 or time.monotonic() - last_checkpoint >= CHECKPOINT_SECONDS):

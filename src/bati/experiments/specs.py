@@ -22,6 +22,7 @@ from bati.envs import FAMILY_NAMES, TaskFamily, family_names, get_family
 from bati.errors import BatiError
 from bati.experiments.probes import Probe, run_probe
 from bati.experiments.sweep import Cell, Grid, SweepResult, expand, record_lock, sweep
+from bati.methods import training_of
 from bati.report.likelihood import has_task_table, likelihood_split_due, save_likelihood_split
 from bati.train import check_seeds
 
@@ -93,8 +94,8 @@ class Spec:
     """The spec's parts for a family of your own (registered with `register_family`, docs/extending.md),
     where the experiment transfers to any family; None: only the paper's families."""
     likelihood_split: bool = False
-    """Keep `bati likelihood`'s split of Eq. 8 (`<run>/likelihood.json`) for each finished run of a likelihood
-    method, and report it: which term of the likelihood picks the task, and whether it picks the collector's."""
+    """Keep `bati likelihood`'s split of Eq. 8 (`<run>/likelihood.json`) for each finished BATI run (the trained
+    model's, which BATI-R and BATI-auto share), and report it: which term of the likelihood picks the task, and whether it picks the collector's."""
 
 
 def _settings(**values) -> tuple[str, ...]:
@@ -392,7 +393,8 @@ def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"),
             except Exception as err:  # a failed probe is reported; the others go on
                 errors[label] = f"{type(err).__name__}: {err}"
         c = cell.config
-        if (plan.spec.likelihood_split and has_task_table(c.method)
+        # the split is the trained model's: bati-r and bati-auto share bati's training, so bati's run has it
+        if (plan.spec.likelihood_split and has_task_table(c.method) and training_of(c.method) == c.method
                 and likelihood_split_due(c.out_dir, c.steps, c.eval_context_length)):
             label = f"{cell.label} likelihood"
             if on_probe is not None:

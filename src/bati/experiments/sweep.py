@@ -24,7 +24,7 @@ import socket
 import time
 import traceback
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -163,9 +163,12 @@ def is_done(cell: Cell) -> bool:
 # --- jobs ------------------------------------------------------------------------------------
 @dataclass
 class Job:
-    """The cells of one setting and method, differing only in their seeds: one vmapped program."""
+    """The cells of one setting and method, differing only in their seeds: one vmapped program; `alongside`:
+    the same seeds' cells of methods that train exactly as this one (bati-r and bati-auto with bati), evaluated
+    alongside its runs rather than trained again."""
 
     cells: list[Cell]
+    alongside: list[Cell] = field(default_factory=list)
 
     @property
     def config(self) -> TrainConfig:
@@ -181,20 +184,41 @@ class Job:
         return f"{c.family} {c.scale} eps={c.noise:g} {c.method} seeds {list(self.seeds)}"
 
 
-def make_jobs(cells: list[Cell]) -> list[Job]:
+def make_jobs(cells: list[Cell], share_training: bool = True) -> list[Job]:
+    """The cells grouped into jobs (one per setting and method); with `share_training`, the job of a method
+    that trains as another (`TaskInference.trains_as`) joins that one's job of the same setting and seeds."""
+    from bati.methods import training_of
+
     jobs: dict[str, Job] = {}
     for cell in cells:
         jobs.setdefault(cell.job_key, Job([])).cells.append(cell)
-    return list(jobs.values())
+    if not share_training:
+        return list(jobs.values())
+
+    def setting(job: Job) -> tuple:  # the run directories' parent holds one setting (method and seed aside)
+        return job.config.out_dir.parent, job.seeds
+
+    trainers = {(setting(job), job.config.method): job for job in jobs.values() if not job.config.datasets}
+    kept = []
+    for job in jobs.values():
+        twin = training_of(job.config.method)
+        host = trainers.get((setting(job), twin)) if twin != job.config.method else None
+        if host is not None:
+            host.alongside += job.cells
+        else:
+            kept.append(job)
+    return kept
 
 
-def run_job(config: TrainConfig, seeds: tuple[int, ...], runs_dir: Path, references: dict | None = None) -> list[dict]:
+def run_job(config: TrainConfig, seeds: tuple[int, ...], runs_dir: Path, references: dict | None = None,
+            also: tuple[str, ...] = ()) -> list[dict]:
     """What a worker runs: the job's seeds in one program (no progress bars: the sweep shows its table).
-    `references`: the collection's random and expert returns when an earlier job computed them."""
+    `references`: the collection's random and expert returns when an earlier job computed them; `also`: the
+    methods evaluated alongside (Job.alongside)."""
     from bati.train import train_seeds
 
     summaries = train_seeds(replace(config, out_dir=None), seeds, show_progress=False, runs_dir=runs_dir,
-                            references=references)
+                            references=references, also=also)
     return [{k: s[k] for k in ("seed", "p_train_return", "p_test_return", "reference_returns") if k in s}
             for s in summaries]
 
@@ -296,20 +320,28 @@ def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("dat
         references: dict[str, dict] = {}  # collection -> its random and expert returns, computed once
 
         def arguments(job: Job) -> tuple:
-            return job.config, job.seeds, job.config.out_dir.parent, references.get(collection_key(job.config))
+            also = tuple(dict.fromkeys(c.config.method for c in job.alongside))
+            return job.config, job.seeds, job.config.out_dir.parent, references.get(collection_key(job.config)), also
 
         def finished(job: Job, error: str | None, summaries: list[dict] | None = None) -> None:
             for cell in job.cells:
                 status[cell.id] = "failed" if error else "done"
                 if error:
                     errors[cell.id] = error
+            for cell in job.alongside:  # done when its run finished alongside (or already was, on its own)
+                if error or not is_done(cell):
+                    status[cell.id] = "failed"
+                    errors[cell.id] = error or (f"not evaluated alongside {job.config.method} (its run directory "
+                                                "holds a run of its own): rerun the sweep to train it")
+                else:
+                    status[cell.id] = "done"
             if summaries and summaries[0].get("reference_returns"):
                 references.setdefault(collection_key(job.config), summaries[0]["reference_returns"])
             record()
             table.refresh()
 
         def running(job: Job) -> None:
-            for cell in job.cells:
+            for cell in job.cells + job.alongside:
                 status[cell.id] = "running"
             table.refresh()
 
@@ -425,7 +457,7 @@ class LiveTable:
         for column in ("family", "scale", "eps", "method", "seeds", "status"):
             table.add_column(column)
         style = {"done": "green", "failed": "red", "running": "yellow", "skipped": "dim"}
-        for job in make_jobs(self.cells):
+        for job in make_jobs(self.cells, share_training=False):
             states = sorted({self.status[c.id] for c in job.cells})
             text = "/".join(states)
             c = job.config

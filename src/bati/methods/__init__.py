@@ -28,6 +28,11 @@ def method_names(names: tuple[str, ...] | list[str]) -> list[str]:
     return chosen
 
 
+def training_of(name: str) -> str:
+    """The method whose training run `name`'s is (`TaskInference.trains_as`; itself when it trains its own way)."""
+    return METHODS[name].trains_as or name
+
+
 def make_method(name: str, spec: MethodSpec, config=None) -> TaskInference:
     """Method `name` for data described by `spec`, with its hyperparameters `config` (an instance of
     its `Config`; default: the Config's defaults, family-dependent ones from `spec.family`)."""
@@ -36,4 +41,4 @@ def make_method(name: str, spec: MethodSpec, config=None) -> TaskInference:
     return METHODS[name](spec, config)
 
 
-__all__ = ["METHODS", "MethodSpec", "TaskInference", "make_method", "method_names"]
+__all__ = ["METHODS", "MethodSpec", "TaskInference", "make_method", "method_names", "training_of"]

@@ -130,6 +130,7 @@ class BATIReward(BATI):
     """
 
     reward_only_inference = True
+    trains_as = "bati"
 
 
 STATE_WEIGHTS = (0.0, 0.1, 0.25, 0.5, 0.75, 0.9, 1.0)
@@ -150,6 +151,7 @@ class BATIAuto(BATI):
     """
 
     calibrates = True
+    trains_as = "bati"
 
     def calibrate(self, params, contexts, distances):
         """`contexts` (n_train, C, ...): off-policy contexts of the training tasks, in task order;
