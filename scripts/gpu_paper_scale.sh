@@ -30,8 +30,9 @@ mode=${MODE:-fg}
 scale=${SCALE:-paper}
 families=${FAMILIES:-AntDir}
 # The claim methods first (C1-C3 compare BATI with these four), then the references; 3 seeds (the claims' minimum):
-# a 15-minute session finishes 2-3 such jobs (docs/performance.md), and the committed cells are skipped.
-methods=${METHODS:-"bati focal csro recon unicorn oracle bati-r no-context"}
+# a 15-minute session finishes 2-3 such jobs (docs/performance.md), and the committed cells are skipped. BATI-R and
+# BATI-auto cost only evaluations where BATI's job is pending too (evaluated alongside it: docs/methods.md).
+methods=${METHODS:-"bati focal csro recon unicorn oracle bati-r bati-auto no-context"}
 seeds=${SEEDS:-"0 1 2"}
 workers=${WORKERS:-1}
 cores=$(nproc)
