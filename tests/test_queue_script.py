@@ -88,3 +88,15 @@ def test_wait_pid_of_a_finished_process_does_not_wait(tmp_path):
     start = time.monotonic()
     jobs, _ = run_queue(tmp_path, WAIT_PID=str(done.pid))
     assert jobs and time.monotonic() - start < 20
+
+
+def test_methods_evaluated_alongside_come_only_with_a_run_to_do(tmp_path):
+    # HalfCheetahVel's BATI seed 0 is finished: its job is BATI alone (skipped in seconds); BATI-R and BATI-auto
+    # beside a finished BATI would train on their own, which their own later phases do
+    done = tmp_path / "out" / "experiments" / "HalfCheetahVel" / "cpu-eps1-abcdef12" / "bati-seed0"
+    done.mkdir(parents=True)
+    (done / "eval.json").write_text("{}")
+    jobs, _ = run_queue(tmp_path)
+    first_pass = [(f, m) for e, f, m, _ in jobs if e == "main" and m.startswith("bati")][:3]
+    assert first_pass == [("AntDir", "bati+bati-r+bati-auto"), ("HalfCheetahVel", "bati"),
+                          ("HalfCheetahDir", "bati+bati-r+bati-auto")]
