@@ -149,8 +149,8 @@ def test_a_compared_cell_still_rising_over_its_scored_window_is_named_beside_the
     assert c2.flat == 1 and c2.moving == [("focal on AntDir rising", "+0.40 [+0.40, +0.40]")]
     assert claims_module.converged_text(c2, short=True) == "no: 1 of 2 cells still moving (focal on AntDir rising)"
     assert "still moving: focal on AntDir rising" in claims_module.every_scale(findings, c2.claim)
-    c3 = next(f for f in findings if f.claim.name == "C3")  # compares BATI with Recon only: FOCAL is not its
-    assert c3.moving == [] and claims_module.converged_text(c3, short=True) == "yes (1 of 1 cell flat)"
+    c3 = next(f for f in findings if f.claim.name == "C3")  # compares BATI with Recon only, which has no run:
+    assert c3.families == [] and c3.moving == [] and claims_module.converged_text(c3, short=True) == "-"
 
 
 def test_a_family_where_only_the_oracle_ran_does_not_count_as_tested(tmp_path):
@@ -158,3 +158,22 @@ def test_a_family_where_only_the_oracle_ran_does_not_count_as_tested(tmp_path):
                                         ("oracle", "HalfCheetahVel"): (HIGH, HIGH)})
     c1 = next(f for f in decide(tmp_path) if f.claim.name == "C1" and f.source is CPU)
     assert c1.families == ["AntDir"]
+
+
+def test_a_family_where_bati_ran_without_the_compared_method_does_not_count_as_tested(tmp_path):
+    """C8 compares BATI with ER-TRL: BATI's HalfCheetahVel cells, without an ER-TRL run there, are not its
+    evidence, nor is their convergence (it was listed as C8's "still moving" cell)."""
+    write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("er-trl", "AntDir"): (HIGH, LOW),
+                                        ("bati", "HalfCheetahVel"): (HIGH, HIGH),
+                                        ("focal", "HalfCheetahVel"): (HIGH, LOW)})
+    for path in (tmp_path / CPU.out_dir).rglob("eval.json"):  # every cell flat but BATI's on HalfCheetahVel
+        record = json.loads(path.read_text())
+        rise = 0.1 if (record["method"], record["family"]) == ("bati", "HalfCheetahVel") else 0.0
+        record |= {"evaluations_averaged": 5, "curve": [
+            {"step": 10_000 * (i + 6), "p_test_return": record["p_test_return"] + rise * (i - 2) + 0.01 * record["seed"],
+             "p_train_return": record["p_train_return"]} for i in range(5)]}
+        path.write_text(json.dumps(record))
+    found = {f.claim.name: f for f in decide(tmp_path) if f.source is CPU}
+    assert found["C8"].families == ["AntDir"] and (found["C8"].flat, found["C8"].moving) == (2, [])
+    assert found["C1"].families == ["HalfCheetahVel"]  # ER-TRL is not one of the paper's baselines
+    assert [cell for cell, _ in found["C1"].moving] == ["bati on HalfCheetahVel rising"]

@@ -378,14 +378,24 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
             if not records:
                 continue
             lines, verdict = claim.test(records, claim.families)
-            moving, flat = convergence(records, claim.methods)
-            findings.append(Finding(claim, source, lines, verdict, len(records),
-                                    [f for f in claim.families  # where a compared method ran, not the Oracle alone
-                                     if any(r.family == f and r.method in claim.methods for r in records)],
+            compared = compared_families(records, claim)
+            moving, flat = convergence([r for r in records if r.family in compared], claim.methods)
+            findings.append(Finding(claim, source, lines, verdict, len(records), compared,
                                     sorted({r.commit[:12] for r in records if r.commit}),
                                     sorted({r.device for r in records if r.device}),
                                     jobs_wall_time((r.job, r.wall_time_s) for r in records), moving, flat))
     return findings
+
+
+def compared_families(records: list[Record], claim: Claim) -> list[str]:
+    """The claim's families where BATI and at least one method it is compared with ran: a family with BATI alone
+    (or the Oracle alone) tests nothing, and its cells are not the verdict's."""
+    others = [m for m in claim.methods if m != "bati"]
+
+    def ran(method, family):
+        return any(r.family == family and r.method == method for r in records)
+
+    return [f for f in claim.families if ran("bati", f) and any(ran(m, f) for m in others)]
 
 
 def convergence(records: list[Record], methods: tuple[str, ...]) -> tuple[list[tuple[str, str]], int]:
