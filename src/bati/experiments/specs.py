@@ -95,7 +95,8 @@ class Spec:
     where the experiment transfers to any family; None: only the paper's families."""
     likelihood_split: bool = False
     """Keep `bati likelihood`'s split of Eq. 8 (`<run>/likelihood.json`) for each finished BATI run (the trained
-    model's, which BATI-R and BATI-auto share), and report it: which term of the likelihood picks the task, and whether it picks the collector's."""
+    model's, which BATI-R and BATI-auto share), and report it: which term of the likelihood picks the task, and
+    whether it picks the collector's."""
 
 
 def _settings(**values) -> tuple[str, ...]:
@@ -369,8 +370,9 @@ class ExperimentResult:
 def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
                    backend: str = "local", address: str | None = None, show_progress: bool = True,
                    on_probe: Callable[[str], None] | None = None, locked: bool = False) -> ExperimentResult:
-    """Run the plan's cells that are not finished (one sweep), then the probes of the finished ones (and,
-    where the spec keeps it, the likelihood split of their likelihood-method runs), holding the experiment's sweep record all along (a second process on it is refused at once;
+    """Run the plan's cells that are not finished (one sweep), then the probes of the finished ones (and, where
+    the spec keeps it, the likelihood split of their BATI runs), holding the experiment's sweep record all along
+    (a second process on it is refused at once;
     `locked`: the caller holds `record_lock(out_dir, status_file(plan.spec))` already)."""
     if not locked:
         with record_lock(out_dir, status_file(plan.spec)):
