@@ -51,6 +51,9 @@ collect() {  # $1 family, the rest: more options
   fits collect || return 1
   python -m bati.cli data collect --family "$family" --scale paper --workers 2 --root "$data_root" "$@" || exit 1
 }
+default_eps() {  # $1 family: its default noise, as the setting directories write it (%g)
+  python -c "import sys; from bati.envs import get_family; print(f'{get_family(sys.argv[1]).default_noise:g}')" "$1"
+}
 data_root=${1:-data}
 out_dir=${2:-$(pwd)/results/cpu/experiments}
 seeds=${SEEDS:-"0 1 2"}
@@ -62,7 +65,7 @@ job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.
     local methods=${method//+/ }
     # methods evaluated alongside the first one's run (bati+bati-r+bati-auto) come with it only while its run is
     # to do: beside a finished one they would train on their own, which their own later phase does
-    if [ "$methods" != "${methods%% *}" ] && ls "$out_dir/$family"/cpu-eps1-*/"${methods%% *}-seed$seed"/eval.json \
+    if [ "$methods" != "${methods%% *}" ] && ls "$out_dir/$family/cpu-eps$(default_eps "$family")-"*/"${methods%% *}-seed$seed"/eval.json \
         > /dev/null 2>&1; then
       methods=${methods%% *}
     fi
@@ -78,12 +81,13 @@ families=${FAMILIES:-"AntDir HalfCheetahVel HalfCheetahDir HopperParam WalkerPar
 phase1a=${PHASE1A:-"oracle bati+bati-r+bati-auto focal"}
 phase1b=${PHASE1B:-"bati-r csro unicorn recon no-context"}
 phase2=${PHASE2:-"er-trl bati-auto dpt"}
-# Phase 0: jobs a stop interrupted (a cell with a checkpoint and no eval.json) finish first: eps = 1 cells are the
-# main table's, the others the noise ablation's.
+# Phase 0: jobs a stop interrupted (a cell with a checkpoint and no eval.json) finish first: cells at the family's
+# default eps (HalfCheetahDir's is 0.8, the others' 1) are the main table's, the others the noise ablation's.
 interrupted=$(for ckpt in "$out_dir"/*/cpu-eps*/*-seed*/checkpoint.msgpack; do
   [ -e "$ckpt" ] || continue; run=$(dirname "$ckpt"); [ -e "$run/eval.json" ] && continue
-  setting=$(basename "$(dirname "$run")"); experiment=noise; case $setting in cpu-eps1-*) experiment=main;; esac
-  echo "$experiment:$(basename "$(dirname "$(dirname "$run")")"):$(basename "$run" | sed 's/-seed[0-9]*$//')"
+  family=$(basename "$(dirname "$(dirname "$run")")"); setting=$(basename "$(dirname "$run")")
+  experiment=noise; case $setting in "cpu-eps$(default_eps "$family")-"*) experiment=main;; esac
+  echo "$experiment:$family:$(basename "$run" | sed 's/-seed[0-9]*$//')"
 done | sort -u)
 for job in $interrupted; do
   IFS=: read -r experiment family method <<< "$job"
