@@ -16,9 +16,10 @@
 # table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL (issue 28), the AntDir noise ablation's
 # BATI and FOCAL (claim C4, untested at every scale), then phase 1 in two passes over the families: the Oracle (the
 # normaliser), BATI and FOCAL first (claims C1-C2 on five families; BATI-R and BATI-auto are evaluated alongside
-# BATI's run, which is their training too: `bati+bati-r+bati-auto`), ER-TRL's noise cells, then the other methods
-# that the claims compare (BATI's reward-only variant, the paper's baselines, the no-context floor), then the noise
-# ablation's other methods, the FOCAL distance ablation, then
+# BATI's run, which is their training too: `bati+bati-r+bati-auto`), with the context-length and ood-tasks
+# ablations' BATI and FOCAL (claims C5, C6) before the last two families, ER-TRL's noise cells, then the other methods
+# that the claims compare (BATI's reward-only variant, the paper's baselines, the no-context floor) and the two
+# ablations' other baselines, then the noise ablation's other methods, the FOCAL distance ablation, then
 # phase 2: the others (ER-TRL, BATI-auto, DPT) on every family. WAIT_PID: a running job's process to wait for first
 # (a queue restarted with a new order beside a job of the old one).
 # After a job: `bati experiment main --scale cpu --report-only --out-dir results/cpu/experiments --data-root DATA`
@@ -65,7 +66,7 @@ job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.
     local methods=${method//+/ }
     # methods evaluated alongside the first one's run (bati+bati-r+bati-auto) come with it only while its run is
     # to do: beside a finished one they would train on their own, which their own later phase does
-    if [ "$methods" != "${methods%% *}" ] && ls "$out_dir/$family/cpu-eps$(default_eps "$family")-"*/"${methods%% *}-seed$seed"/eval.json \
+    if [ "$experiment" = main ] && [ "$methods" != "${methods%% *}" ] && ls "$out_dir/$family/cpu-eps$(default_eps "$family")-"*/"${methods%% *}-seed$seed"/eval.json \
         > /dev/null 2>&1; then
       methods=${methods%% *}
     fi
@@ -81,14 +82,21 @@ families=${FAMILIES:-"AntDir HalfCheetahVel HalfCheetahDir HopperParam WalkerPar
 phase1a=${PHASE1A:-"oracle bati+bati-r+bati-auto focal"}
 phase1b=${PHASE1B:-"bati-r csro unicorn recon no-context"}
 phase2=${PHASE2:-"er-trl bati-auto dpt"}
-# Phase 0: jobs a stop interrupted (a cell with a checkpoint and no eval.json) finish first: cells at the family's
-# default eps (HalfCheetahDir's is 0.8, the others' 1) are the main table's, the others the noise ablation's.
-interrupted=$(for ckpt in "$out_dir"/*/cpu-eps*/*-seed*/checkpoint.msgpack; do
-  [ -e "$ckpt" ] || continue; run=$(dirname "$ckpt"); [ -e "$run/eval.json" ] && continue
-  family=$(basename "$(dirname "$(dirname "$run")")"); setting=$(basename "$(dirname "$run")")
-  experiment=noise; case $setting in "cpu-eps$(default_eps "$family")-"*) experiment=main;; esac
-  echo "$experiment:$family:$(basename "$run" | sed 's/-seed[0-9]*$//')"
-done | sort -u)
+# Phase 0: jobs a stop interrupted (a cell with a checkpoint and no eval.json) finish first, each in the first
+# experiment (main, noise, context-length, ood-tasks) whose cpu-scale plan holds its run directory.
+interrupted=$(python - "$out_dir" "$data_root" << 'EOF'
+import sys
+from pathlib import Path
+from bati.experiments.specs import get_spec, plan_experiment
+out_dir, data_root = Path(sys.argv[1]), Path(sys.argv[2])
+runs = {p.parent.resolve() for p in out_dir.glob("*/*/*-seed*/checkpoint.msgpack") if not (p.parent / "eval.json").exists()}
+for name in ("main", "noise", "context-length", "ood-tasks"):
+    for cell in plan_experiment(get_spec(name), "cpu", out_dir, seeds=(0, 1, 2, 3, 4), data_root=data_root).cells:
+        if cell.config.out_dir.resolve() in runs:
+            runs.discard(cell.config.out_dir.resolve())
+            print(f"{name}:{cell.config.family}:{cell.config.method}")
+EOF
+)
 for job in $interrupted; do
   IFS=: read -r experiment family method <<< "$job"
   job "$experiment" "$family" "$method" --out-dir "$out_dir"
@@ -100,8 +108,8 @@ noise() {  # $@: the methods of the AntDir noise ablation to run (eps 0 and 0.5;
   collect AntDir --noise 0 && collect AntDir --noise 0.5 || return
   for method in "$@"; do job noise AntDir "$method" --out-dir "$out_dir"; done
 }
-main_phase() {  # $1: the methods, each on every family
-  for family in $families; do
+main_phase() {  # $1: the methods, each on every family (or on the families $2)
+  for family in ${2:-$families}; do
     collect "$family" || continue
     for method in $1; do job main "$family" "$method" --out-dir "$out_dir"; done
   done
@@ -111,9 +119,20 @@ main_phase() {  # $1: the methods, each on every family
 # the claim pair with the Oracle (the normaliser) on every family, so that C1-C2 rest on five families as early as
 # possible, then the other paper methods; ER-TRL's part of the noise ablation (issue 28) between them.
 noise ${NOISE_FIRST:-bati focal}
+main_phase "$phase1a" "AntDir HalfCheetahVel HalfCheetahDir"  # the families whose data is at hand
+# Claims C5 (Table 1: BATI gains from longer contexts, the baselines do not) and C6 (Table 2: only BATI positive on
+# out-of-range AntDir tasks), untested at every scale with 3 seeds: their claim pair (BATI, with BATI-R evaluated
+# alongside, and FOCAL) before the last two families' data; their other baselines come with phase 1b's.
+ablations() {  # $@: the methods of each of the two ablations
+  [ -n "${SKIP_ABLATIONS:-}" ] && return
+  for method in "$@"; do job context-length HalfCheetahDir "$method" --out-dir "$out_dir"; done
+  for method in "$@"; do job ood-tasks AntDir "$method" --out-dir "$out_dir"; done
+}
+ablations bati+bati-r focal
 main_phase "$phase1a"
 noise ${NOISE_NEXT:-er-trl}
 main_phase "$phase1b"
+ablations csro unicorn recon
 noise ${NOISE_REST:-bati-r csro unicorn recon}
 # FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the
 # baselines' fall on p_test? Its own output directory, so the main table's report is not touched.
