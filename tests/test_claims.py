@@ -177,3 +177,18 @@ def test_a_family_where_bati_ran_without_the_compared_method_does_not_count_as_t
     assert found["C8"].families == ["AntDir"] and (found["C8"].flat, found["C8"].moving) == (2, [])
     assert found["C1"].families == ["HalfCheetahVel"]  # ER-TRL is not one of the paper's baselines
     assert [cell for cell, _ in found["C1"].moving] == ["bati on HalfCheetahVel rising"]
+
+
+def test_a_family_at_one_noise_level_does_not_count_for_the_noise_claim(tmp_path):
+    """C4 compares eps 0 with the largest eps: HalfCheetahDir's eps-0.8 cells (the main table's), without its
+    eps-0 ones, are not its evidence (the page said "all 2 families" with AntDir's alone deciding)."""
+    cells = {(m, f): (HIGH, HIGH) for m in ("bati", "focal") for f in ("AntDir", "HalfCheetahDir")}
+    write_cells(tmp_path, CPU, "noise", cells)
+    for run in (tmp_path / CPU.out_dir / "HalfCheetahDir").glob("cpu-eps0-*/*"):  # HalfCheetahDir at eps 0.8 only
+        (run / "eval.json").unlink()
+    for run in (tmp_path / CPU.out_dir / "HalfCheetahDir").glob("cpu-eps0.4-*/*"):
+        (run / "eval.json").unlink()
+    c4 = next(f for f in decide(tmp_path) if f.claim.name == "C4" and f.source is CPU)
+    assert c4.families == ["AntDir"]
+    assert claims_module.every_scale([c4], c4.claim).startswith("cpu: ") and "AntDir; 1 of 2 families" in \
+        claims_module.every_scale([c4], c4.claim)
