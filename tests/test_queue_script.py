@@ -7,15 +7,21 @@ import os
 import re
 import shutil
 import subprocess
+import sys
 import time
 from pathlib import Path
 
 import pytest
 
+from bati.experiments.specs import get_spec, plan_experiment
+
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "cpu_main_queue.sh"
 STUB = """#!/bin/sh
-echo "$*" >> "$QUEUE_CALLS"
+case "$1 $2" in "-m bati.cli") echo "$*" >> "$QUEUE_CALLS"; exit 0;; esac
+exec "$REAL_PYTHON" "$@"
 """
+"""A `python` that records the queue's `bati` commands (and succeeds) and runs its other Python (its questions about
+the plans and the families) with the real interpreter."""
 
 pytestmark = pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
 
@@ -31,7 +37,7 @@ def run_queue(tmp_path: Path, **env: str) -> tuple[list[tuple[str, str, str, str
     calls = tmp_path / "calls.log"
     calls.unlink(missing_ok=True)
     full_env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}", "QUEUE_CALLS": str(calls),
-                "SEEDS": "0", **env}
+                "REAL_PYTHON": sys.executable, "SEEDS": "0", **env}
     out = subprocess.run(["bash", str(SCRIPT), str(tmp_path / "data"), str(tmp_path / "out" / "experiments")],
                          env=full_env, capture_output=True, text=True, timeout=120, check=True)
     jobs = []
@@ -44,19 +50,32 @@ def run_queue(tmp_path: Path, **env: str) -> tuple[list[tuple[str, str, str, str
     return jobs, out.stdout
 
 
+FAMILIES = ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")
+
+
 def test_order_claims_first(tmp_path):
     jobs, _ = run_queue(tmp_path)
     assert jobs[:7] == [("main", "AntDir", "csro", "0"), ("main", "AntDir", "er-trl", "0"),
                         ("noise", "AntDir", "bati", "0"), ("noise", "AntDir", "focal", "0"),
                         ("main", "AntDir", "oracle", "0"), ("main", "AntDir", "bati+bati-r+bati-auto", "0"),
                         ("main", "AntDir", "focal", "0")]
-    # phase 1's first pass (the Oracle, BATI, FOCAL) on every family before ER-TRL's noise cells and the rest
-    first_pass = [(f, m) for _, f, m, _ in jobs[4:19]]
-    assert first_pass == [(f, m) for f in ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")
+    # phase 1's first pass (the Oracle, BATI, FOCAL) on the first three families, then the claim pairs of the
+    # context-length and ood-tasks ablations (C5, C6), then the first pass on the last two families, before ER-TRL's
+    # noise cells and the rest
+    first_pass = [(f, m) for _, f, m, _ in jobs[4:13]]
+    assert first_pass == [(f, m) for f in ("AntDir", "HalfCheetahVel", "HalfCheetahDir")
                           for m in ("oracle", "bati+bati-r+bati-auto", "focal")]
-    assert jobs[19] == ("noise", "AntDir", "er-trl", "0") and jobs[20] == ("main", "AntDir", "bati-r", "0")
+    assert jobs[13:17] == [("context-length", "HalfCheetahDir", "bati+bati-r", "0"),
+                           ("context-length", "HalfCheetahDir", "focal", "0"),
+                           ("ood-tasks", "AntDir", "bati+bati-r", "0"), ("ood-tasks", "AntDir", "focal", "0")]
+    # (the first pass then visits every family again: finished cells are skipped in seconds, skipped ones run)
+    assert [(f, m) for _, f, m, _ in jobs[17:32]] == [(f, m) for f in FAMILIES
+                                                       for m in ("oracle", "bati+bati-r+bati-auto", "focal")]
+    assert jobs[32] == ("noise", "AntDir", "er-trl", "0") and jobs[33] == ("main", "AntDir", "bati-r", "0")
+    ablations = [(e, m) for e, _, m, _ in jobs if e in ("context-length", "ood-tasks")]
+    assert ablations[4:] == [(e, m) for e in ("context-length", "ood-tasks") for m in ("csro", "unicorn", "recon")]
     families = list(dict.fromkeys(family for experiment, family, _, _ in jobs if experiment == "main"))
-    assert families == ["AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam"]
+    assert families == list(FAMILIES)
     assert ("main", "WalkerParam", "dpt", "0") == jobs[-1]  # phase 2 last
     # BATI's job on a family evaluates BATI-R and BATI-auto alongside (one training): the three in one command
 
@@ -71,12 +90,26 @@ def test_stop_at_skips_what_would_not_finish(tmp_path):
     assert past == [] and "skipped: oracle" in out
 
 
-def test_a_cut_job_resumes_first(tmp_path):
-    run = tmp_path / "out" / "experiments" / "HopperParam" / "cpu-eps0.5-abcdef12" / "bati-r-seed0"
+def planned_run(tmp_path: Path, experiment: str, family: str, method: str, **where) -> Path:
+    """The run directory the queue's experiment plans for (family, method, seed 0) and the config values `where`."""
+    plan = plan_experiment(get_spec(experiment), "cpu", tmp_path / "out" / "experiments", seeds=(0,),
+                           data_root=tmp_path / "data")
+    return next(c.config.out_dir for c in plan.cells if (c.config.family, c.config.method) == (family, method)
+                and all(getattr(c.config, k) == v for k, v in where.items()))
+
+
+@pytest.mark.parametrize("experiment, family, method, where", [
+    ("noise", "AntDir", "bati-r", {"noise": 0.5}),  # a noise ablation's cell
+    ("main", "HalfCheetahDir", "focal", {}),  # the main table's, at HalfCheetahDir's eps 0.8 (was taken for noise)
+    ("context-length", "HalfCheetahDir", "bati", {}),  # eps 0.9
+    ("ood-tasks", "AntDir", "focal", {}),  # eps 1 like main's, another setting
+])
+def test_a_cut_job_resumes_first_in_its_own_experiment(tmp_path, experiment, family, method, where):
+    run = planned_run(tmp_path, experiment, family, method, **where)
     run.mkdir(parents=True)
     (run / "checkpoint.msgpack").write_bytes(b"")
     jobs, _ = run_queue(tmp_path)
-    assert jobs[0] == ("noise", "HopperParam", "bati-r", "0")  # not eps 1: a noise ablation's cell
+    assert jobs[0] == (experiment, family, method, "0")
     (run / "eval.json").write_text("{}")  # finished: nothing to resume
     jobs, _ = run_queue(tmp_path)
     assert jobs[0] == ("main", "AntDir", "csro", "0")
