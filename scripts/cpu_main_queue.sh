@@ -52,9 +52,9 @@ collect() {  # $1 family, the rest: more options
   fits collect || return 1
   python -m bati.cli data collect --family "$family" --scale paper --workers 2 --root "$data_root" "$@" || exit 1
 }
-default_eps() {  # $1 family: its default noise, as the setting directories write it (%g)
-  python -c "import sys; from bati.envs import get_family; print(f'{get_family(sys.argv[1]).default_noise:g}')" "$1"
-}
+declare -A main_eps  # each family's default noise (its main-table eps), as the setting directories write it (%g)
+while read -r name value; do main_eps[$name]=$value; done < <(python -c "from bati.envs import family_names, get_family
+for name in family_names(): print(name, f'{get_family(name).default_noise:g}')")
 data_root=${1:-data}
 out_dir=${2:-$(pwd)/results/cpu/experiments}
 seeds=${SEEDS:-"0 1 2"}
@@ -66,7 +66,7 @@ job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.
     local methods=${method//+/ }
     # methods evaluated alongside the first one's run (bati+bati-r+bati-auto) come with it only while its run is
     # to do: beside a finished one they would train on their own, which their own later phase does
-    if [ "$experiment" = main ] && [ "$methods" != "${methods%% *}" ] && ls "$out_dir/$family/cpu-eps$(default_eps "$family")-"*/"${methods%% *}-seed$seed"/eval.json \
+    if [ "$experiment" = main ] && [ "$methods" != "${methods%% *}" ] && ls "$out_dir/$family/cpu-eps${main_eps[$family]:-1}-"*/"${methods%% *}-seed$seed"/eval.json \
         > /dev/null 2>&1; then
       methods=${methods%% *}
     fi
