@@ -18,7 +18,8 @@
 # normaliser), BATI and FOCAL first (claims C1-C2 on five families; BATI-R and BATI-auto are evaluated alongside
 # BATI's run, which is their training too: `bati+bati-r+bati-auto`), with the context-length and ood-tasks
 # ablations' BATI and FOCAL (claims C5, C6) before the last two families, ER-TRL's noise cells, then the other methods
-# that the claims compare (BATI's reward-only variant, the paper's baselines, the no-context floor) and the two
+# that the claims compare (BATI's reward-only variant, hosting BATI-auto where BATI's run is finished, the paper's
+# baselines, the no-context floor) and the two
 # ablations' other baselines, then the noise ablation's other methods, the FOCAL distance ablation, then
 # phase 2: the others (ER-TRL, BATI-auto, DPT) on every family. WAIT_PID: a running job's process to wait for first
 # (a queue restarted with a new order beside a job of the old one).
@@ -34,7 +35,7 @@ while [ -n "${WAIT_PID:-}" ] && kill -0 "$WAIT_PID" 2> /dev/null; do sleep 20; d
 stop_at=${STOP_AT:-}
 minutes() {  # a seed's (or, "collect", a family's paper data) estimated minutes
   case $1 in
-    bati+*) echo 70;;  # BATI with BATI-R and BATI-auto evaluated alongside (their training is BATI's)
+    bati+*|bati-r+*) echo 70;;  # BATI (or BATI-R) with the others of its training evaluated alongside
     oracle|no-context) echo 35;; focal|unicorn) echo 45;; bati|bati-r|bati-auto|recon|dpt) echo 65;;
     csro|er-trl) echo 100;; collect) echo 40;; *) echo 100;;
   esac
@@ -80,7 +81,7 @@ job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.
 }
 families=${FAMILIES:-"AntDir HalfCheetahVel HalfCheetahDir HopperParam WalkerParam"}
 phase1a=${PHASE1A:-"oracle bati+bati-r+bati-auto focal"}
-phase1b=${PHASE1B:-"bati-r csro unicorn recon no-context"}
+phase1b=${PHASE1B:-"bati-r+bati-auto csro unicorn recon no-context"}  # bati-r hosts bati-auto where bati finished
 phase2=${PHASE2:-"er-trl bati-auto dpt"}
 # Phase 0: jobs a stop interrupted (a cell with a checkpoint and no eval.json) finish first, each in the first
 # experiment (main, noise, context-length, ood-tasks) whose cpu-scale plan holds its run directory.

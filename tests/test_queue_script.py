@@ -71,7 +71,7 @@ def test_order_claims_first(tmp_path):
     # (the first pass then visits every family again: finished cells are skipped in seconds, skipped ones run)
     assert [(f, m) for _, f, m, _ in jobs[17:32]] == [(f, m) for f in FAMILIES
                                                        for m in ("oracle", "bati+bati-r+bati-auto", "focal")]
-    assert jobs[32] == ("noise", "AntDir", "er-trl", "0") and jobs[33] == ("main", "AntDir", "bati-r", "0")
+    assert jobs[32] == ("noise", "AntDir", "er-trl", "0") and jobs[33] == ("main", "AntDir", "bati-r+bati-auto", "0")
     ablations = [(e, m) for e, _, m, _ in jobs if e in ("context-length", "ood-tasks")]
     assert ablations[4:] == [(e, m) for e in ("context-length", "ood-tasks") for m in ("csro", "unicorn", "recon")]
     families = list(dict.fromkeys(family for experiment, family, _, _ in jobs if experiment == "main"))

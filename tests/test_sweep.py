@@ -41,6 +41,9 @@ def test_a_method_that_trains_as_another_joins_its_job_of_the_same_setting_and_s
         ("bati", (0, 1), ("bati-r", "bati-auto")), ("recon", (0, 1), ())]
     # without its twin's job (e.g. bati finished), or with other seeds or settings, it trains on its own
     assert plan(Grid(methods=("bati-r",))) == [("bati-r", (0,), ())]
+    # ... or hosts the other one that trains alike (bati finished, bati-r and bati-auto to do: one training)
+    assert plan(Grid(methods=("bati-auto", "bati-r", "recon"))) == [("bati-auto", (0,), ("bati-r",)),
+                                                                  ("recon", (0,), ())]
     assert plan(Grid(methods=("bati",), seeds=(0, 1)), Grid(methods=("bati-r",), seeds=(0,))) == [
         ("bati", (0, 1), ()), ("bati-r", (0,), ())]
     assert plan(Grid(methods=("bati",)), Grid(methods=("bati-r",), settings=("steps=40",))) == [
@@ -183,6 +186,15 @@ def test_cells_evaluated_alongside_are_done_without_training_again(tmp_path, loc
     saved = {c.config.method: json.loads((c.config.out_dir / "eval.json").read_text()) for c in expand(grid, out)}
     assert saved["bati-r"]["trained_with"] == "bati-seed0" and saved["bati-r"]["method"] == "bati-r"
     assert sweep(grid, out, show_progress=False).count("skipped") == 3
+    # bati finished, bati-r and bati-auto to do (another setting): bati-r trains (as bati) and hosts bati-auto
+    ran.clear()
+    later = Grid(methods=("bati", "bati-r", "bati-auto"), seeds=(0,), settings=TINY + ("iql.tau=0.8",))
+    sweep(Grid(methods=("bati",), seeds=(0,), settings=later.settings), out, show_progress=False)
+    ran.clear()
+    assert sweep(later, out, show_progress=False).count("done") == 2 and ran == [("bati-r", ("bati-auto",))]
+    auto = json.loads((next(c for c in expand(later, out) if c.config.method == "bati-auto").config.out_dir
+                       / "eval.json").read_text())
+    assert auto["trained_with"] == "bati-r-seed0" and auto["method"] == "bati-auto"
 
 
 def test_the_reference_returns_are_computed_once_per_collection(tmp_path, local, monkeypatch):

@@ -185,8 +185,9 @@ class Job:
 
 
 def make_jobs(cells: list[Cell], share_training: bool = True) -> list[Job]:
-    """The cells grouped into jobs (one per setting and method); with `share_training`, the job of a method
-    that trains as another (`TaskInference.trains_as`) joins that one's job of the same setting and seeds."""
+    """The cells grouped into jobs (one per setting and method); with `share_training`, the jobs of methods that
+    train alike (`TaskInference.trains_as`: bati, bati-r, bati-auto) in the same setting and seeds are one job,
+    hosted by the method they train as (bati) or, without its job (its runs finished), by the first of them."""
     from bati.methods import training_of
 
     jobs: dict[str, Job] = {}
@@ -195,18 +196,21 @@ def make_jobs(cells: list[Cell], share_training: bool = True) -> list[Job]:
     if not share_training:
         return list(jobs.values())
 
-    def setting(job: Job) -> tuple:  # the run directories' parent holds one setting (method and seed aside)
-        return job.config.out_dir.parent, job.seeds
+    def training(job: Job) -> tuple:  # the run directories' parent holds one setting (method and seed aside)
+        if job.config.datasets:  # own data: no p_train / p_test contexts to evaluate alongside on
+            return (id(job),)
+        return job.config.out_dir.parent, job.seeds, training_of(job.config.method)
 
-    trainers = {(setting(job), job.config.method): job for job in jobs.values() if not job.config.datasets}
-    kept = []
+    groups: dict[tuple, list[Job]] = {}
     for job in jobs.values():
-        twin = training_of(job.config.method)
-        host = trainers.get((setting(job), twin)) if twin != job.config.method else None
-        if host is not None:
-            host.alongside += job.cells
-        else:
-            kept.append(job)
+        groups.setdefault(training(job), []).append(job)
+    kept = []
+    for group in groups.values():
+        host = next((job for job in group if job.config.method == training_of(job.config.method)), group[0])
+        for job in group:
+            if job is not host:
+                host.alongside += job.cells
+        kept.append(host)
     return kept
 
 
