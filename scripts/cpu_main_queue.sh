@@ -71,33 +71,50 @@ job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.
         > /dev/null 2>&1; then
       methods=${methods%% *}
     fi
+    # finished at the queue's start (its own plans, below): skipped here, without a `bati experiment` to say so
+    [ "$*" = "--out-dir $out_dir" ] && finished "$experiment" "$family" "$seed" $methods && continue
     fits "${methods// /+}" "$cells" || continue
     echo "=== $family ${methods// /+} seed $seed ($experiment $*) $(date -u)"
     python -m bati.cli experiment "$experiment" --scale cpu --families "$family" --methods $methods --seeds "$seed" \
       --data-root "$data_root" --workers 1 "$@"
     echo "=== $family ${methods// /+} seed $seed done rc=$? $(date -u)"
+    ran=1
   done  # the report over every seed finished so far (a one-seed job reports its seed only)
-  python -m bati.cli experiment "$experiment" --scale cpu --report-only --data-root "$data_root" "$@" > /dev/null
+  [ -n "${ran:-}" ] && python -m bati.cli experiment "$experiment" --scale cpu --report-only --data-root "$data_root" \
+    "$@" > /dev/null
+  ran=
+}
+finished() {  # $1 experiment, $2 family, $3 seed, the rest: methods; true when all their planned cells were finished
+  local experiment=$1 family=$2 seed=$3 m; shift 3
+  for m in "$@"; do case " $finished_cells " in *" $experiment:$family:$m:$seed "*) ;; *) return 1;; esac; done
 }
 families=${FAMILIES:-"AntDir HalfCheetahVel HalfCheetahDir HopperParam WalkerParam"}
 phase1a=${PHASE1A:-"oracle bati+bati-r+bati-auto focal"}
 phase1b=${PHASE1B:-"bati-r+bati-auto csro unicorn recon no-context"}  # bati-r hosts bati-auto where bati finished
 phase2=${PHASE2:-"er-trl bati-auto dpt"}
-# Phase 0: jobs a stop interrupted (a cell with a checkpoint and no eval.json) finish first, each in the first
-# experiment (main, noise, context-length, ood-tasks) whose cpu-scale plan holds its run directory.
-interrupted=$(python - "$out_dir" "$data_root" << 'EOF'
+# The queue's experiments as planned at the cpu scale: which (experiment, family, method, seed) have all their cells
+# finished (eval.json; a job of those is skipped without starting Python), and phase 0: jobs a stop interrupted (a cell
+# with a checkpoint and no eval.json) finish first, each in the first experiment whose plan holds its run directory.
+plans=$(python - "$out_dir" "$data_root" << 'EOF'
 import sys
 from pathlib import Path
 from bati.experiments.specs import get_spec, plan_experiment
 out_dir, data_root = Path(sys.argv[1]), Path(sys.argv[2])
 runs = {p.parent.resolve() for p in out_dir.glob("*/*/*-seed*/checkpoint.msgpack") if not (p.parent / "eval.json").exists()}
 for name in ("main", "noise", "context-length", "ood-tasks"):
+    done = {}
     for cell in plan_experiment(get_spec(name), "cpu", out_dir, seeds=(0, 1, 2, 3, 4), data_root=data_root).cells:
-        if cell.config.out_dir.resolve() in runs:
-            runs.discard(cell.config.out_dir.resolve())
-            print(f"{name}:{cell.config.family}:{cell.config.method}")
+        c = cell.config
+        key = f"{name}:{c.family}:{c.method}:{c.seed}"
+        done[key] = done.get(key, True) and (c.out_dir / "eval.json").exists()
+        if c.out_dir.resolve() in runs:
+            runs.discard(c.out_dir.resolve())
+            print(f"cut:{name}:{c.family}:{c.method}")
+    print(*(f"finished:{key}" for key, value in done.items() if value), sep="\n")
 EOF
 )
+finished_cells=$(sed -n 's/^finished://p' <<< "$plans" | tr '\n' ' ')
+interrupted=$(sed -n 's/^cut://p' <<< "$plans" | sort -u)
 for job in $interrupted; do
   IFS=: read -r experiment family method <<< "$job"
   job "$experiment" "$family" "$method" --out-dir "$out_dir"

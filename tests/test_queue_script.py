@@ -133,3 +133,15 @@ def test_methods_evaluated_alongside_come_only_with_a_run_to_do(tmp_path):
     first_pass = [(f, m) for e, f, m, _ in jobs if e == "main" and m.startswith("bati")][:3]
     assert first_pass == [("AntDir", "bati+bati-r+bati-auto"), ("HalfCheetahVel", "bati"),
                           ("HalfCheetahDir", "bati+bati-r+bati-auto")]
+
+
+def test_a_job_finished_at_the_start_is_skipped_without_starting_bati(tmp_path):
+    for method in ("csro", "er-trl"):  # AntDir's first two jobs, finished
+        run = planned_run(tmp_path, "main", "AntDir", method)
+        run.mkdir(parents=True)
+        (run / "eval.json").write_text("{}")
+    jobs, _ = run_queue(tmp_path)
+    assert jobs[0] == ("noise", "AntDir", "bati", "0")
+    calls = (tmp_path / "calls.log").read_text()
+    assert "main --scale cpu --families AntDir --methods csro " not in calls
+    assert "main --scale cpu --families AntDir --methods er-trl " not in calls  # nor in phase 2
