@@ -6,7 +6,8 @@
 # (PYTHONPATH: the worktree's code, not the editable install's; run from this checkout with a relative out dir, so
 # that the reports and sweep files it writes name `results/cpu/experiments` as a rerun here would, not an absolute
 # path; each run records the commit of the code it ran, the worktree's.)
-# Each line is a resumable `bati experiment`: finished cells are skipped (in seconds), an interrupted job resumes
+# Each line is a resumable `bati experiment`: finished cells are skipped (those finished when the queue starts without
+# starting bati at all: it took ~10 s a job, minutes for a queue restarted beside ~40 finished jobs), an interrupted job resumes
 # from its checkpoints (a run checkpoints at least every 10 minutes) when the machine still holds them. Every job
 # trains one seed: a work session lasts 3 hours, often on a fresh machine (checkpoints are git-ignored; when the
 # machine does outlive a session, phase 0 below resumes its cut job), so a job should finish inside one; on 2 cores one seed at a time is also no slower than three vmapped seeds
