@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,7 @@ import pytest
 from bati.cli import main
 from bati.experiments import claims as claims_module
 from bati.experiments.claims import CLAIMS, SOURCES, decide, overall
+from bati.experiments.probes import probe_path
 from bati.experiments.specs import get_spec, plan_experiment
 
 CPU = next(s for s in SOURCES if s.scale == "cpu")
@@ -192,3 +194,27 @@ def test_a_family_at_one_noise_level_does_not_count_for_the_noise_claim(tmp_path
     assert c4.families == ["AntDir"]
     assert claims_module.every_scale([c4], c4.claim).startswith("cpu: ") and "AntDir; 1 of 2 families" in \
         claims_module.every_scale([c4], c4.claim)
+
+
+def test_bati_alone_decides_whether_longer_contexts_help(tmp_path):
+    """C5 is about BATI's own gain with the context's length: its runs count without a baseline beside them."""
+    plan = plan_experiment(get_spec("context-length"), CPU.scale, tmp_path / CPU.out_dir, seeds=(0, 1, 2))
+    for cell in plan.cells:
+        c = cell.config
+        if c.method != "bati":
+            continue
+        c.out_dir.mkdir(parents=True, exist_ok=True)
+        record = {"family": c.family, "method": c.method, "seed": c.seed, "p_train_return": 0.5,
+                  "p_test_return": 0.5, "reference_returns": {"random": 0.0, "expert": 1.0}, "commit": "abc",
+                  "device": "cpu", "wall_time_s": 60.0}
+        (c.out_dir / "eval.json").write_text(json.dumps(record))
+        for probe in plan.probes[cell.id]:  # longer contexts, higher returns on every seed
+            n = probe.eval_context_length
+            path = probe_path(c.out_dir, probe)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps({"probe": asdict(probe), "context_length": n, "p_train_return": 0.5,
+                                        "p_test_return": n / 100 + c.seed / 1000, "commit": "abc",
+                                        "wall_time_s": 1.0}))
+    c5 = next(f for f in decide(tmp_path) if f.claim.name == "C5" and f.source is CPU)
+    assert c5.families == ["HalfCheetahDir"] and c5.verdict == "reproduced"
+    assert claims_module.every_scale([c5], c5.claim) == "cpu: reproduced (HalfCheetahDir)"
