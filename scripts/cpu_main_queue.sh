@@ -6,8 +6,8 @@
 # (PYTHONPATH: the worktree's code, not the editable install's; run from this checkout with a relative out dir, so
 # that the reports and sweep files it writes name `results/cpu/experiments` as a rerun here would, not an absolute
 # path; each run records the commit of the code it ran, the worktree's.)
-# Each line is a resumable `bati experiment`: finished cells are skipped (those finished when the queue starts without
-# starting bati at all: it took ~10 s a job, minutes for a queue restarted beside ~40 finished jobs), an interrupted job resumes
+# Each line is a resumable `bati experiment`: finished cells are skipped (those finished when the queue starts
+# without starting bati at all: ~10 s a job, minutes for a restart beside ~40 finished jobs), an interrupted job resumes
 # from its checkpoints (a run checkpoints at least every 10 minutes) when the machine still holds them. Every job
 # trains one seed: a work session lasts 3 hours, often on a fresh machine (checkpoints are git-ignored; when the
 # machine does outlive a session, phase 0 below resumes its cut job), so a job should finish inside one; on 2 cores one seed at a time is also no slower than three vmapped seeds
@@ -62,7 +62,7 @@ out_dir=${2:-$(pwd)/results/cpu/experiments}
 seeds=${SEEDS:-"0 1 2"}
 job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.g. bati+bati-r), the rest: more
   # options; one seed at a time
-  local experiment=$1 family=$2 method=$3; shift 3
+  local experiment=$1 family=$2 method=$3 ran=; shift 3
   local cells=1; [ "$experiment" = noise ] && cells=2  # a noise seed trains eps 0 and eps / 2 (eps's are main's)
   for seed in $seeds; do
     local methods=${method//+/ }
@@ -81,9 +81,9 @@ job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.
     echo "=== $family ${methods// /+} seed $seed done rc=$? $(date -u)"
     ran=1
   done  # the report over every seed finished so far (a one-seed job reports its seed only)
-  [ -n "${ran:-}" ] && python -m bati.cli experiment "$experiment" --scale cpu --report-only --data-root "$data_root" \
+  [ -n "$ran" ] && python -m bati.cli experiment "$experiment" --scale cpu --report-only --data-root "$data_root" \
     "$@" > /dev/null
-  ran=
+  return 0
 }
 finished() {  # $1 experiment, $2 family, $3 seed, the rest: methods; true when all their planned cells were finished
   local experiment=$1 family=$2 seed=$3 m; shift 3
