@@ -140,6 +140,10 @@ def test_self_collected_spec_reuses_main_and_state_term_cells():
 def test_spec_filters_and_seed_override():
     cells = configs("main", methods=("bati", "recon"), families=("AntDir",), seeds=(3, 4))
     assert [(c.method, c.seed) for c in cells] == [("bati", 3), ("bati", 4), ("recon", 3), ("recon", 4)]
+    # a chosen subset keeps the order it was chosen in (the sweep's jobs follow the cells)
+    cells = configs("main", "paper", methods=("csro", "focal", "bati"), families=("HopperParam", "AntDir"), seeds=(0,))
+    assert [(c.family, c.method) for c in cells] == [(f, m) for f in ("HopperParam", "AntDir")
+                                                     for m in ("csro", "focal", "bati")]
 
 
 # --- bad input: one line, exit 2, nothing written ------------------------------------------------

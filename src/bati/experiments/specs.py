@@ -319,7 +319,8 @@ def plan_experiment(spec: Spec, scale: str, out_dir: Path, *, seeds: tuple[int, 
                     settings: tuple[str, ...] = (), methods: tuple[str, ...] = (), families: tuple[str, ...] = (),
                     data_root: Path = Path("data")) -> Plan:
     """Expand `spec` at `scale`. `settings` (KEY=VALUE) apply to every cell but may not change what the
-    spec itself sets; `methods` / `families` keep a subset of the spec's. ExperimentError otherwise."""
+    spec itself sets; `methods` / `families` keep a subset of the spec's, in their order (the cells', hence the
+    jobs' order). ExperimentError otherwise."""
     if scale not in spec.scales:
         raise ExperimentError(f"experiment {spec.name!r} has no {scale!r} scale; choose one of: {', '.join(spec.scales)}")
     try:
@@ -344,8 +345,9 @@ def plan_experiment(spec: Spec, scale: str, out_dir: Path, *, seeds: tuple[int, 
                                   f"its {kind} choices: {', '.join(sorted(allowed))}{hint}")
     grids, cells, probes = [], [], {}
     for part in parts:
-        keep_methods = tuple(m for m in part.methods if not methods or m in methods)
-        keep_families = tuple(f for f in part.families if not families or f in families)
+        # a chosen subset runs in the order chosen (a short GPU session runs the methods it names first)
+        keep_methods = tuple(m for m in dict.fromkeys(methods or part.methods) if m in part.methods)
+        keep_families = tuple(f for f in dict.fromkeys(families or part.families) if f in part.families)
         if not keep_methods or not keep_families:
             continue
         grid = Grid(families=keep_families, methods=keep_methods, seeds=seeds, noises=part.noises, scales=(scale,),
