@@ -150,7 +150,8 @@ def test_a_sweep_runs_every_cell_then_skips_finished_ones(tmp_path, local, monke
     assert again.count("skipped") == 4 and _statuses(out) == ["skipped"] * 4
 
 
-def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(tmp_path, local, monkeypatch):
+def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(tmp_path, local, monkeypatch,
+                                                                                capsys):
     grid = Grid(methods=("bati", "recon"), seeds=(0,), settings=TINY)
     out = tmp_path / "sweep"
     real = sweep_module.run_job
@@ -166,6 +167,12 @@ def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(
     cells = json.loads((out / "sweep.json").read_text())["cells"]
     failed = [c for c in cells.values() if c["status"] == "failed"]
     assert failed[0]["label"] == "PointGoal/recon/seed0" and failed[0]["error"] == "RuntimeError: disk on fire"
+    # without a terminal (a background run's log), one line per job as it starts and ends
+    lines = [line.split("] ", 1)[1] for line in capsys.readouterr().err.splitlines() if "] sweep: " in line]
+    assert lines[0] == "sweep: PointGoal quick eps 1 bati seeds 0: running"
+    assert lines[1].startswith("sweep: PointGoal quick eps 1 bati seeds 0: done after ")
+    assert lines[2:] == ["sweep: PointGoal quick eps 1 recon seeds 0: running",
+                         "sweep: PointGoal quick eps 1 recon seeds 0: failed (RuntimeError: disk on fire) after 0.0 min"]
 
     ran = []
     monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None, also=():

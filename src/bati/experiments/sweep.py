@@ -21,6 +21,7 @@ import hashlib
 import json
 import os
 import socket
+import sys
 import time
 import traceback
 from collections.abc import Callable, Iterable
@@ -343,11 +344,13 @@ def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("dat
                 references.setdefault(collection_key(job.config), summaries[0]["reference_returns"])
             record()
             table.refresh()
+            table.log(job, f"failed ({error})" if error else "done")
 
         def running(job: Job) -> None:
             for cell in job.cells + job.alongside:
                 status[cell.id] = "running"
             table.refresh()
+            table.log(job, "running")
 
         if backend == "ray":
             _run_on_ray(ray, jobs, workers, arguments, running, finished)
@@ -451,6 +454,7 @@ class LiveTable:
     def __init__(self, cells: list[Cell], status: dict[str, str], enabled: bool):
         self.cells, self.status, self.enabled = cells, status, enabled
         self.live = None
+        self.started: dict[int, float] = {}  # a job's start (perf_counter), for the plain log lines
 
     def render(self):
         from rich.table import Table
@@ -472,6 +476,20 @@ class LiveTable:
     def refresh(self) -> None:
         if self.live is not None:
             self.live.update(self.render())
+
+    def log(self, job: Job, state: str) -> None:
+        """Without the live table (output to a file or a pipe, e.g. a background run's log): one line on stderr
+        per job as it starts and as it ends, with its wall time, so a log shows where a sweep stands."""
+        if self.enabled:
+            return
+        now = time.perf_counter()
+        started = self.started.setdefault(id(job), now)
+        c = job.config
+        also = ", ".join(dict.fromkeys(cell.config.method for cell in job.alongside))
+        seeds = " ".join(map(str, job.seeds))
+        took = "" if state == "running" else f" after {(now - started) / 60:.1f} min"
+        print(f"[{time.strftime('%H:%M:%S')}] sweep: {c.family} {c.scale} eps {c.noise:g} {c.method} seeds {seeds}"
+              f"{f' (with {also} alongside)' if also else ''}: {state}{took}", file=sys.stderr, flush=True)
 
     def __enter__(self):
         if self.enabled:
