@@ -67,10 +67,17 @@ job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.
   for seed in $seeds; do
     local methods=${method//+/ }
     # methods evaluated alongside the first one's run (bati+bati-r+bati-auto) come with it only while its run is
-    # to do: beside a finished one they would train on their own, which their own later phase does
-    if [ "$experiment" = main ] && [ "$methods" != "${methods%% *}" ] && ls "$out_dir/$family/cpu-eps${main_eps[$family]:-1}-"*/"${methods%% *}-seed$seed"/eval.json \
-        > /dev/null 2>&1; then
-      methods=${methods%% *}
+    # to do: beside a finished one they would train on their own, which their own later phase does (main: phase 1b;
+    # the ablations: their second pass). Main's runs are looked up on disk (one may finish while the queue runs),
+    # the other experiments' in the plans read at the start.
+    local first=${methods%% *}
+    if [ "$methods" != "$first" ]; then
+      if [ "$experiment" = main ] && ls "$out_dir/$family/cpu-eps${main_eps[$family]:-1}-"*/"$first-seed$seed"/eval.json \
+          > /dev/null 2>&1; then
+        methods=$first
+      elif [ "$experiment" != main ] && finished "$experiment" "$family" "$seed" "$first"; then
+        methods=$first
+      fi
     fi
     # finished at the queue's start (its own plans, below): skipped here, without a `bati experiment` to say so
     [ "$*" = "--out-dir $out_dir" ] && finished "$experiment" "$family" "$seed" $methods && continue
@@ -151,7 +158,7 @@ ablations bati+bati-r focal
 main_phase "$phase1a"
 noise ${NOISE_NEXT:-er-trl}
 main_phase "$phase1b"
-ablations csro unicorn recon
+ablations csro unicorn recon bati-r  # bati-r: the seeds whose BATI run finished without it alongside
 noise ${NOISE_REST:-bati-r csro unicorn recon}
 # FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the
 # baselines' fall on p_test? Its own output directory, so the main table's report is not touched.

@@ -73,7 +73,8 @@ def test_order_claims_first(tmp_path):
                                                        for m in ("oracle", "bati+bati-r+bati-auto", "focal")]
     assert jobs[32] == ("noise", "AntDir", "er-trl", "0") and jobs[33] == ("main", "AntDir", "bati-r+bati-auto", "0")
     ablations = [(e, m) for e, _, m, _ in jobs if e in ("context-length", "ood-tasks")]
-    assert ablations[4:] == [(e, m) for e in ("context-length", "ood-tasks") for m in ("csro", "unicorn", "recon")]
+    assert ablations[4:] == [(e, m) for e in ("context-length", "ood-tasks") for m in ("csro", "unicorn", "recon",
+                                                                                       "bati-r")]
     families = list(dict.fromkeys(family for experiment, family, _, _ in jobs if experiment == "main"))
     assert families == list(FAMILIES)
     assert ("main", "WalkerParam", "dpt", "0") == jobs[-1]  # phase 2 last
@@ -133,6 +134,18 @@ def test_methods_evaluated_alongside_come_only_with_a_run_to_do(tmp_path):
     first_pass = [(f, m) for e, f, m, _ in jobs if e == "main" and m.startswith("bati")][:3]
     assert first_pass == [("AntDir", "bati+bati-r+bati-auto"), ("HalfCheetahVel", "bati"),
                           ("HalfCheetahDir", "bati+bati-r+bati-auto")]
+
+
+def test_an_ablation_whose_bati_run_finished_alone_trains_bati_r_in_its_second_pass(tmp_path):
+    # ood-tasks' BATI seed 0 finished without BATI-R alongside (a resumed cut job): no `bati bati-r` job (BATI-R
+    # would train on its own before FOCAL's claim cells); BATI-R comes in the ablations' second pass
+    run = planned_run(tmp_path, "ood-tasks", "AntDir", "bati")
+    run.mkdir(parents=True)
+    (run / "eval.json").write_text("{}")
+    jobs, _ = run_queue(tmp_path)
+    ood = [m for e, _, m, _ in jobs if e == "ood-tasks"]
+    assert ood == ["focal", "csro", "unicorn", "recon", "bati-r"]
+    assert [m for e, _, m, _ in jobs if e == "context-length"][:2] == ["bati+bati-r", "focal"]  # untouched
 
 
 def test_a_job_finished_at_the_start_is_skipped_without_starting_bati(tmp_path):
