@@ -54,9 +54,6 @@ collect() {  # $1 family, the rest: more options
   fits collect || return 1
   python -m bati.cli data collect --family "$family" --scale paper --workers 2 --root "$data_root" "$@" || exit 1
 }
-declare -A main_eps  # each family's default noise (its main-table eps), as the setting directories write it (%g)
-while read -r name value; do main_eps[$name]=$value; done < <(python -c "from bati.envs import family_names, get_family
-for name in family_names(): print(name, f'{get_family(name).default_noise:g}')")
 data_root=${1:-data}
 out_dir=${2:-$(pwd)/results/cpu/experiments}
 seeds=${SEEDS:-"0 1 2"}
@@ -67,18 +64,12 @@ job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.
   for seed in $seeds; do
     local methods=${method//+/ }
     # methods evaluated alongside the first one's run (bati+bati-r+bati-auto) come with it only while its run is
-    # to do: beside a finished one they would train on their own, which their own later phase does (main: phase 1b;
-    # the ablations: their second pass). Main's runs are looked up on disk (one may finish while the queue runs),
-    # the other experiments' in the plans read at the start.
+    # to do: beside a finished one they would train on their own, which their own later pass does (main: phase 1b;
+    # the ablations: their second pass). Asked of the plans now: the run may have finished since the queue started.
     local first=${methods%% *}
-    if [ "$methods" != "$first" ]; then
-      if [ "$experiment" = main ] && ls "$out_dir/$family/cpu-eps${main_eps[$family]:-1}-"*/"$first-seed$seed"/eval.json \
-          > /dev/null 2>&1; then
-        methods=$first
-      elif [ "$experiment" != main ] && finished "$experiment" "$family" "$seed" "$first"; then
-        methods=$first
-      fi
-    fi
+    # (the Python only where some setting of the family has such a run finished: seconds saved per job otherwise)
+    [ "$methods" != "$first" ] && ls "$out_dir/$family/"*/"$first-seed$seed/eval.json" > /dev/null 2>&1 &&
+      finished_now "$experiment" "$family" "$seed" "$first" && methods=$first
     # finished at the queue's start (its own plans, below): skipped here, without a `bati experiment` to say so
     [ "$*" = "--out-dir $out_dir" ] && finished "$experiment" "$family" "$seed" $methods && continue
     fits "${methods// /+}" "$cells" || continue
@@ -91,6 +82,17 @@ job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.
   [ -n "$ran" ] && python -m bati.cli experiment "$experiment" --scale cpu --report-only --data-root "$data_root" \
     "$@" > /dev/null
   return 0
+}
+finished_now() {  # $1 experiment, $2 family, $3 seed, $4 method: true when its planned cells are finished now
+  python - "$out_dir" "$data_root" "$@" << 'EOF'
+import sys
+from pathlib import Path
+from bati.experiments.specs import get_spec, plan_experiment
+out_dir, data_root, experiment, family, seed, method = sys.argv[1:]
+plan = plan_experiment(get_spec(experiment), "cpu", Path(out_dir), seeds=(int(seed),), methods=(method,),
+                       families=(family,), data_root=Path(data_root))
+sys.exit(0 if all((c.config.out_dir / "eval.json").exists() for c in plan.cells) else 1)
+EOF
 }
 finished() {  # $1 experiment, $2 family, $3 seed, the rest: methods; true when all their planned cells were finished
   local experiment=$1 family=$2 seed=$3 m; shift 3
@@ -117,15 +119,15 @@ for name in ("main", "noise", "context-length", "ood-tasks"):
         done[key] = done.get(key, True) and (c.out_dir / "eval.json").exists()
         if c.out_dir.resolve() in runs:
             runs.discard(c.out_dir.resolve())
-            print(f"cut:{name}:{c.family}:{c.method}")
+            print(f"cut:{name}:{c.family}:{c.method}:{c.seed}")
     print(*(f"finished:{key}" for key, value in done.items() if value), sep="\n")
 EOF
 )
 finished_cells=$(sed -n 's/^finished://p' <<< "$plans" | tr '\n' ' ')
 interrupted=$(sed -n 's/^cut://p' <<< "$plans" | sort -u)
-for job in $interrupted; do
-  IFS=: read -r experiment family method <<< "$job"
-  job "$experiment" "$family" "$method" --out-dir "$out_dir"
+for job in $interrupted; do  # the cut seed only: the others come in their phase (with their methods alongside)
+  IFS=: read -r experiment family method seed <<< "$job"
+  seeds=$seed job "$experiment" "$family" "$method" --out-dir "$out_dir"
 done
 if collect AntDir; then
   for method in csro er-trl; do job main AntDir "$method" --out-dir "$out_dir"; done

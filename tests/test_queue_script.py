@@ -116,6 +116,18 @@ def test_a_cut_job_resumes_first_in_its_own_experiment(tmp_path, experiment, fam
     assert jobs[0] == ("main", "AntDir", "csro", "0")
 
 
+def test_phase_0_resumes_the_cut_seed_only(tmp_path):
+    # ood-tasks' BATI seed 1 was cut: phase 0 resumes seed 1 alone; seeds 0 and 2 come in the ablations' pass,
+    # with BATI-R alongside (phase 0 once trained them all there, BATI alone)
+    run = planned_run(tmp_path, "ood-tasks", "AntDir", "bati")
+    cut = run.parent / "bati-seed1"
+    cut.mkdir(parents=True)
+    (cut / "checkpoint.msgpack").write_bytes(b"")
+    jobs, _ = run_queue(tmp_path, SEEDS="0 1 2")
+    assert jobs[0] == ("ood-tasks", "AntDir", "bati", "1") and jobs[1] == ("main", "AntDir", "csro", "0")
+    assert ("ood-tasks", "AntDir", "bati+bati-r", "0") in jobs and ("ood-tasks", "AntDir", "bati+bati-r", "2") in jobs
+
+
 def test_wait_pid_of_a_finished_process_does_not_wait(tmp_path):
     done = subprocess.Popen(["true"])
     done.wait()
@@ -125,15 +137,19 @@ def test_wait_pid_of_a_finished_process_does_not_wait(tmp_path):
 
 
 def test_methods_evaluated_alongside_come_only_with_a_run_to_do(tmp_path):
-    # HalfCheetahVel's BATI seed 0 is finished: its job is BATI alone (skipped in seconds); BATI-R and BATI-auto
-    # beside a finished BATI would train on their own, which their own later phases do
-    done = tmp_path / "out" / "experiments" / "HalfCheetahVel" / "cpu-eps1-abcdef12" / "bati-seed0"
+    # HalfCheetahVel's BATI seed 0 is finished: its job is BATI alone, finished, so none; BATI-R and BATI-auto beside
+    # a finished BATI would train on their own, which their own later phase does (BATI-R hosting BATI-auto)
+    done = planned_run(tmp_path, "main", "HalfCheetahVel", "bati")
     done.mkdir(parents=True)
+    other = planned_run(tmp_path, "ood-tasks", "AntDir", "bati")  # another experiment's BATI, same family and seed:
+    other.mkdir(parents=True)  # AntDir's main BATI is still to do, with the others alongside
+    (other / "eval.json").write_text("{}")
     (done / "eval.json").write_text("{}")
     jobs, _ = run_queue(tmp_path)
-    first_pass = [(f, m) for e, f, m, _ in jobs if e == "main" and m.startswith("bati")][:3]
-    assert first_pass == [("AntDir", "bati+bati-r+bati-auto"), ("HalfCheetahVel", "bati"),
-                          ("HalfCheetahDir", "bati+bati-r+bati-auto")]
+    first_pass = [(f, m) for e, f, m, _ in jobs if e == "main" and m.startswith("bati")][:2]
+    assert first_pass == [("AntDir", "bati+bati-r+bati-auto"), ("HalfCheetahDir", "bati+bati-r+bati-auto")]
+    hcv = [m for e, f, m, _ in jobs if e == "main" and f == "HalfCheetahVel" and m.startswith("bati")]
+    assert hcv == ["bati-r+bati-auto", "bati-auto"]  # phase 1b, then phase 2's (skipped by the sweep once done)
 
 
 def test_an_ablation_whose_bati_run_finished_alone_trains_bati_r_in_its_second_pass(tmp_path):
