@@ -14,16 +14,16 @@
 # The work: BENCH=1 first measures seed-steps/s at k = BENCH_SEEDS (default 3, chunks of 100 steps: a job's) (benchmarks/seed_throughput.py, pinned to core 0
 # while the first family's data is collected on the other cores; the experiment waits for it: on 2026-11-25 its
 # compiles took over 9 minutes); then per family: collect its paper data over all cores (the next family's
-# collection runs beside the current experiment, niced, on a quarter of the cores), and `bati experiment main
-# --scale SCALE` for METHODS x SEEDS, one job at a time (WORKERS; a job is one method's seeds vmapped in one
+# collection runs beside the current experiment, niced, on a quarter of the cores), and `bati experiment E
+# --scale SCALE` for each E of EXPERIMENTS (default main) with METHODS x SEEDS, one job at a time (WORKERS; a job is one method's seeds vmapped in one
 # program), its evaluation's MuJoCo envs stepped by EVAL_WORKERS processes. Measured on an H100 (2026-11-25,
 # docs/performance.md): three jobs side by side ran 4.3-5.6 ms per step each against 0.9 ms for one alone (the
 # processes time-slice the GPU), while one evaluation of 3 seeds took 16 s on one core: so one job at a time, and
 # evaluation over the spare cores.
 # Each call's pack is $OUT/results.tar.gz (every result file but checkpoints, plus session.log and bench.md), renewed
 # each time a run finishes, so a call stopped at its limit still returns the runs finished before.
-# Here: tar xzf it into results/<scale>/experiments, then `bati experiment main --scale paper --report-only
-# --out-dir results/paper/experiments` and `bati claims`.
+# Here: tar xzf it into results/<scale>/experiments, then `bati experiment E --scale paper --report-only
+# --out-dir results/paper/experiments` for each E of EXPERIMENTS, and `bati claims`.
 # CPU dry run: MODE=fg SCALE=quick METHODS=bati SEEDS="0 1" SETTINGS="steps=200" DATA=... bash this file.
 set -u
 mode=${MODE:-fg}
@@ -33,6 +33,10 @@ families=${FAMILIES:-AntDir}
 # a 15-minute session finishes 2-3 such jobs (docs/performance.md), and the committed cells are skipped. BATI-R and
 # BATI-auto cost only evaluations where BATI's job is pending too (evaluated alongside it: docs/methods.md).
 methods=${METHODS:-"bati focal csro recon unicorn oracle bati-r bati-auto no-context"}
+# EXPERIMENTS: `bati experiment` names run per family in this order (default main); each runs the methods of METHODS
+# it has on the family (e.g. EXPERIMENTS='main noise' METHODS='bati focal': claim C4's pair at eps 0 / 0.5 on AntDir
+# and HalfCheetahDir, their eps-1 cells being main's); an experiment collects the data it needs over all cores.
+experiments=${EXPERIMENTS:-main}
 seeds=${SEEDS:-"0 1 2"}
 workers=${WORKERS:-1}
 cores=$(nproc)
@@ -79,12 +83,25 @@ work() {  # the session's work: benchmark, then family after family
   while [ $# -gt 0 ]; do
     family=$1; shift
     [ $# -gt 0 ] && { (renice -n 10 "$BASHPID" > /dev/null; collect "$1" $((cores / 4 > 0 ? cores / 4 : 1))) & }
-    # shellcheck disable=SC2086  # word lists on purpose
-    python3 -m bati.cli experiment main --scale "$scale" --families "$family" --methods $methods --seeds $seeds \
-      --workers "$workers" --data-root "$data" --out-dir "$results" --settings $settings \
-      > "$results/experiment-$family.log" 2>&1
-    rc=$?; echo "$family experiment exit $rc after $(( $(date +%s) - start )) s"; tail -2 "$results/experiment-$family.log"
-    [ $rc -eq 2 ] && { echo "bad input: the other families would fail alike; stopping"; break; }
+    for experiment in $experiments; do
+      # the methods of METHODS that this experiment runs on this family, in METHODS' order (none: skip it)
+      # shellcheck disable=SC2086  # word lists on purpose
+      chosen=$(python3 - "$experiment" "$family" $methods << 'EOF'
+import sys
+from bati.experiments.specs import get_spec
+experiment, family, methods = sys.argv[1], sys.argv[2], sys.argv[3:]
+have = {m for part in get_spec(experiment).parts if family in part.families for m in part.methods}
+print(" ".join(m for m in methods if m in have))
+EOF
+) || { echo "no experiment $experiment: stopping"; break 2; }
+      [ -z "$chosen" ] && { echo "$experiment has none of the methods on $family: skipped"; continue; }
+      log="$results/experiment-$experiment-$family.log"
+      # shellcheck disable=SC2086
+      python3 -m bati.cli experiment "$experiment" --scale "$scale" --families "$family" --methods $chosen \
+        --seeds $seeds --workers "$workers" --data-root "$data" --out-dir "$results" --settings $settings > "$log" 2>&1
+      rc=$?; echo "$family $experiment exit $rc after $(( $(date +%s) - start )) s"; tail -2 "$log"
+      [ $rc -eq 2 ] && { echo "bad input: the other families would fail alike; stopping"; break 2; }
+    done
     wait  # the next family's data
   done
   echo "all done after $(( $(date +%s) - start )) s"; touch "$results/session.done"
@@ -123,7 +140,7 @@ case $mode in
     install
     [ -e "$results/session.log" ] && { echo "work already started here: use MODE=watch"; exit 2; }
     seed_results
-    export -f work collect; export scale families methods seeds workers settings data results start cores BENCH
+    export -f work collect; export scale families experiments methods seeds workers settings data results start cores BENCH
     setsid nohup bash -c work > "$results/session.log" 2>&1 < /dev/null &
     watch_work;;
   watch)
