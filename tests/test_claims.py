@@ -218,3 +218,12 @@ def test_bati_alone_decides_whether_longer_contexts_help(tmp_path):
     c5 = next(f for f in decide(tmp_path) if f.claim.name == "C5" and f.source is CPU)
     assert c5.families == ["HalfCheetahDir"] and c5.verdict == "reproduced"
     assert claims_module.every_scale([c5], c5.claim) == "cpu: reproduced (HalfCheetahDir)"
+
+
+def test_bati_alone_positive_out_of_distribution_tests_nothing(tmp_path):
+    """C6 says only BATI is positive: BATI's 3 seeds without any baseline's are no verdict (the page said
+    "reproduced" with BATI's cells alone); with FOCAL's 3 seeds negative, it is."""
+    write_cells(tmp_path, CPU, "ood-tasks", {("bati", "AntDir"): (HIGH, HIGH)})
+    assert verdicts(tmp_path)["C6"][0] == "not tested"
+    write_cells(tmp_path, CPU, "ood-tasks", {("focal", "AntDir"): (HIGH, (-0.3, -0.2, -0.25))})
+    assert verdicts(tmp_path)["C6"][0] == "reproduced"

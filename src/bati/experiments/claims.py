@@ -310,9 +310,9 @@ def only_bati_positive(records: list[Record], families: tuple[str, ...]) -> tupl
         else:
             tested = False
             lines.append(f"{method}: {returns.mean():.2f} ({len(returns)} seed(s))")
-    if not tested or "bati" not in positive:
-        return lines, "not tested"
     others = [v for k, v in positive.items() if k != "bati"]
+    if not tested or "bati" not in positive or not others:  # BATI alone: "only BATI" compares with nothing
+        return lines, "not tested"
     if positive["bati"] == 1 and all(v == -1 for v in others):
         return lines, "reproduced"
     return lines, "partly" if positive["bati"] == 1 or any(v == -1 for v in others) else "not reproduced"
