@@ -5,12 +5,17 @@
 #           watches it for WATCH_S seconds and packs what is finished into $OUT;
 #   watch   (each later call)    watches the detached work for WATCH_S seconds and packs again;
 #   fg      (a CPU dry run)      the same work in the foreground, stopped at BUDGET_S, then packed.
+#   pack    (tests)              packs RESULTS into OUT, as each call ends.
+#   python scripts/gpu_local.py away                  # here: results/ out of the checkout (64 MiB travel limit)
 #   run(command="MODE=start FAMILIES='AntDir HalfCheetahDir' WATCH_S=555 bash scripts/gpu_paper_scale.sh",
-#       carry=[".whl"], timeout_s=600)
-#   run(command="MODE=watch WATCH_S=<budget_left_s - 70> bash scripts/gpu_paper_scale.sh", carry=[".whl"],
+#       carry=[".whl", ".gpu"], timeout_s=600)
+#   run(command="MODE=watch WATCH_S=<budget_left_s - 70> bash scripts/gpu_paper_scale.sh", carry=[".whl", ".gpu"],
 #       timeout_s=<budget_left_s - 30>)                                             # within 30 s of the last reply
-# The working tree that travels must stay under 64 MiB with the 27 MB of wheels: on 2026-11-26 the tracked files
-# were 40 MB, so results/cpu and results/quick were moved out of the checkout for the calls (and back after).
+#   give_back(); python scripts/gpu_local.py back
+#   python scripts/gpu_local.py unpack <files_at> --logs results/paper/<device>-<date>
+# The working tree that travels must stay under 64 MiB with the 27 MB of wheels: `away` moves results/ out (the
+# committed paper cells travel as a slim copy in .gpu/committed) and `unpack` keeps the checkpoints of unfinished
+# runs in .gpu/resume, which the next session's calls carry and resume from.
 # The work: BENCH=1 first measures seed-steps/s at k = BENCH_SEEDS (default 3, chunks of 100 steps: a job's) (benchmarks/seed_throughput.py, pinned to core 0
 # while the first family's data is collected on the other cores; the experiment waits for it: on 2026-11-25 its
 # compiles took over 9 minutes); then per family: collect its paper data over all cores (the next family's
@@ -20,10 +25,10 @@
 # docs/performance.md): three jobs side by side ran 4.3-5.6 ms per step each against 0.9 ms for one alone (the
 # processes time-slice the GPU), while one evaluation of 3 seeds took 16 s on one core: so one job at a time, and
 # evaluation over the spare cores.
-# Each call's pack is $OUT/results.tar.gz (every result file but checkpoints, plus session.log and bench.md), renewed
-# each time a run finishes, so a call stopped at its limit still returns the runs finished before.
-# Here: tar xzf it into results/<scale>/experiments, then `bati experiment E --scale paper --report-only
-# --out-dir results/paper/experiments` for each E of EXPERIMENTS, and `bati claims`.
+# Each call's pack is $OUT/results.tar.gz (every result file but checkpoints, plus session.log and bench.md) and one
+# $OUT/resume-<i>.tar per unfinished run's checkpoint, renewed each time a run finishes, so a call stopped at its
+# limit still returns the runs finished before. Here: `gpu_local.py unpack` (above), then `bati experiment E --scale
+# paper --report-only --out-dir results/paper/experiments` for each E of EXPERIMENTS, and `bati claims`.
 # CPU dry run: MODE=fg SCALE=quick METHODS=bati SEEDS="0 1" SETTINGS="steps=200" DATA=... bash this file.
 set -u
 mode=${MODE:-fg}
@@ -107,11 +112,18 @@ EOF
   echo "all done after $(( $(date +%s) - start )) s"; touch "$results/session.done"
 }
 
-seed_results() {  # the committed cells of this scale count as finished here too: the sweep skips them
-  local committed=${COMMITTED:-results/$scale/experiments}
-  [ -d "$committed" ] || return 0
-  cp -a "$committed/." "$results/"
-  echo "$(find "$committed" -name eval.json | wc -l) committed run(s) of $committed count as finished"
+seed_results() {  # the committed cells of this scale count as finished here too: the sweep skips them; the unfinished
+  # runs of earlier sessions (.gpu/resume: scripts/gpu_local.py unpack) resume from their checkpoints
+  local committed=${COMMITTED:-results/$scale/experiments} resume=${RESUME:-.gpu/resume}
+  [ -z "${COMMITTED:-}" ] && [ -d .gpu/committed ] && committed=.gpu/committed  # gpu_local.py away's slim copy
+  if [ -d "$committed" ]; then
+    cp -a "$committed/." "$results/"
+    echo "$(find "$committed" -name eval.json | wc -l) committed run(s) of $committed count as finished"
+  fi
+  if [ -d "$resume" ]; then
+    cp -a "$resume/." "$results/"
+    echo "$(find "$resume" -name checkpoint.msgpack | wc -l) unfinished run(s) of $resume resume from their checkpoints"
+  fi
 }
 
 finished() { find "$results" -name eval.json | wc -l; }
@@ -122,7 +134,22 @@ pack() {  # one pack per call, replaced atomically: a call stopped at its limit 
   tar czf "$pack.part" --warning=no-file-changed --exclude=checkpoint.msgpack --exclude='*.lock' --exclude='.*.tmp' \
     -C "$results" .
   [ $? -le 1 ] && mv "$pack.part" "$pack"
-  echo "packed $(finished) finished run(s) into $pack ($(du -h "$pack" | cut -f1)) after $(( $(date +%s) - start )) s"
+  pack_resume
+  echo "packed $(finished) finished run(s) into $pack ($(du -h "$pack" | cut -f1)), $(ls "$out" | grep -c '^resume-')" \
+    "checkpoint(s) of unfinished runs, after $(( $(date +%s) - start )) s"
+}
+
+pack_resume() {  # the checkpoint of each unfinished run, a file each (~4-5 MB at the paper scale; the device returns
+  # 8 files of 16 MiB at most), its logs being in the results pack: the next session carries them back
+  # (gpu_local.py unpack puts them in .gpu/resume) and resumes those runs instead of restarting them at step 0
+  local i=0 checkpoint
+  while IFS= read -r checkpoint; do
+    [ -e "$(dirname "$checkpoint")/eval.json" ] && continue
+    [ $i -ge "${RESUME_FILES:-6}" ] && { echo "more unfinished runs than RESUME_FILES: the others restart" >&2; break; }
+    tar cf "$out/resume-$i.tar.part" -C "$results" "${checkpoint#"$results"/}" && mv "$out/resume-$i.tar.part" "$out/resume-$i.tar"
+    i=$((i + 1))
+  done < <(find "$results" -name checkpoint.msgpack | sort)
+  while [ -e "$out/resume-$i.tar" ]; do rm -f "$out/resume-$i.tar"; i=$((i + 1)); done  # an earlier pack's extra ones
 }
 
 watch_work() {  # until the detached work is done or WATCH_S has passed; packs each time a run finishes
@@ -159,5 +186,7 @@ case $mode in
     set +m
     echo "work exit $rc after $(( $(date +%s) - start )) s (143 or 137: stopped at the budget; run again to resume)"
     cat "$results/session.log"; pack;;
-  *) echo "MODE must be start, watch or fg, not $mode"; exit 2;;
+  pack)  # only the packing (what a watch call ends with): RESULTS into OUT
+    pack;;
+  *) echo "MODE must be start, watch, fg or pack, not $mode"; exit 2;;
 esac

@@ -1,0 +1,192 @@
+"""This machine's side of a GPU session (issue 29; the device side is scripts/gpu_paper_scale.sh).
+
+    python scripts/gpu_local.py away       # before the first device call
+    run(command="MODE=start ... bash scripts/gpu_paper_scale.sh", carry=[".whl", ".gpu"], ...)   # then MODE=watch
+    python scripts/gpu_local.py back       # after the last one (also when a call failed)
+    python scripts/gpu_local.py unpack /work/.device/N --logs results/paper/h200-2026-11-27
+
+`away` keeps what travels under the device's 64 MiB: it pauses the cpu queue (SIGSTOP: it writes under results/),
+moves results/ out of the checkout (to --stash) and leaves in .gpu/committed/ a slim copy of the committed cells
+of results/paper/experiments (config.json, eval.json, eval.jsonl: what makes a cell finished there; the training
+logs, most of the bytes, stay here). `back` undoes both. `unpack` takes a call's files: its results.tar.gz (every
+result file but checkpoints) and resume-*.tar (the checkpoint of each unfinished run); finished cells not yet
+committed go into results/paper/experiments, the unfinished runs (with their checkpoints) into .gpu/resume/, which
+the next session's first call carries and resumes from instead of step 0, their logs (no checkpoints) and the
+session's logs into --logs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tarfile
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+COMMITTED = Path("results/paper/experiments")
+SLIM_FILES = ("config.json", "eval.json", "eval.jsonl")
+CHECKPOINT = "checkpoint.msgpack"
+QUEUE_PATTERN = r"cpu_main_queue\.sh|bati\.cli"
+TRAVEL_LIMIT = 64 * 2**20
+
+
+class GpuLocalError(Exception):
+    """One line for the user; nothing was moved."""
+
+
+def run_dirs(tree: Path) -> list[Path]:
+    """The run directories under `tree` (<family>/<setting>/<method>-seed<seed>: those holding a config.json)."""
+    return sorted(p.parent for p in tree.glob("*/*/*/config.json"))
+
+
+def copy_run(src: Path, dest: Path, files=None, checkpoint: bool = False) -> None:
+    """Copy the run directory `src` to `dest` (replacing it): `files` only if given, the checkpoint only if asked."""
+    if dest.exists():
+        shutil.rmtree(dest)
+    dest.mkdir(parents=True)
+    for path in src.iterdir():
+        if path.is_file() and (files is None or path.name in files) and (checkpoint or path.name != CHECKPOINT) \
+                and not path.name.endswith((".lock", ".tmp")):
+            shutil.copy2(path, dest / path.name)
+
+
+def paused_pids(root: Path) -> Path:
+    return root / ".gpu" / "paused.json"
+
+
+def away(root: Path, stash: Path, pause: bool) -> None:
+    results = root / "results"
+    if not results.is_dir():
+        raise GpuLocalError(f"{results} is not there (already away? then `back` first)")
+    if stash.exists():
+        raise GpuLocalError(f"{stash} exists: a stash from an earlier `away`; move it back (`back`) or remove it")
+    if stash.resolve().is_relative_to(root.resolve()):
+        raise GpuLocalError(f"--stash {stash} is inside the checkout: it would travel")
+    slim = root / ".gpu" / "committed"
+    if slim.exists():
+        shutil.rmtree(slim)
+    for run in run_dirs(root / COMMITTED):
+        if (run / "eval.json").exists():
+            copy_run(run, slim / run.relative_to(root / COMMITTED), files=SLIM_FILES)
+    pids = []
+    if pause:
+        found = subprocess.run(["pgrep", "-f", QUEUE_PATTERN], capture_output=True, text=True).stdout.split()
+        pids = [int(p) for p in found if int(p) != os.getpid()]
+        for pid in pids:
+            os.kill(pid, signal.SIGSTOP)
+    paused_pids(root).parent.mkdir(exist_ok=True)
+    paused_pids(root).write_text(json.dumps({"pids": pids, "stash": str(stash.resolve())}))
+    shutil.move(str(results), str(stash))
+    print(f"results/ moved to {stash}; {len(run_dirs(slim))} committed cell(s) in .gpu/committed; "
+          f"{len(pids)} queue process(es) paused; travels ~{travel_size(root) / 2**20:.1f} MiB with .whl and .gpu")
+    if travel_size(root) > TRAVEL_LIMIT:
+        print("warning: over the device's 64 MiB: the call will be refused", file=sys.stderr)
+
+
+def back(root: Path) -> None:
+    record = paused_pids(root)
+    if not record.exists():
+        raise GpuLocalError(f"no {record}: nothing is away")
+    state = json.loads(record.read_text())
+    stash, results = Path(state["stash"]), root / "results"
+    if stash.exists():
+        if results.exists():
+            raise GpuLocalError(f"both {results} and the stash {stash} exist: merge them by hand")
+        shutil.move(str(stash), str(results))
+    for pid in state["pids"]:
+        try:
+            os.kill(pid, signal.SIGCONT)
+        except ProcessLookupError:
+            pass
+    record.unlink()
+    print(f"results/ back from {stash}; {len(state['pids'])} queue process(es) resumed")
+
+
+def travel_size(root: Path) -> int:
+    """Bytes of what a device call would send: tracked and untracked-not-ignored files, plus .whl and .gpu."""
+    listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=root, capture_output=True,
+                            text=True).stdout.split("\0")
+    total = sum((root / p).stat().st_size for p in listed if p and (root / p).is_file())
+    for carried in (".whl", ".gpu"):
+        total += sum(p.stat().st_size for p in (root / carried).rglob("*") if p.is_file())
+    return total
+
+
+def unpack(root: Path, files_at: Path, logs: Path) -> None:
+    pack = files_at / "results.tar.gz"
+    if not pack.is_file():
+        raise GpuLocalError(f"no {pack}: the call returned no pack")
+    committed = root / COMMITTED
+    if not committed.is_dir():
+        raise GpuLocalError(f"{committed} is not there: `back` first")
+    with tempfile.TemporaryDirectory() as tmp:
+        stage = Path(tmp)
+        for archive in [pack, *sorted(files_at.glob("resume-*.tar"))]:
+            with tarfile.open(archive) as tar:
+                tar.extractall(stage, filter="data")
+        new, known, unfinished = 0, 0, []
+        for run in run_dirs(stage):
+            where = run.relative_to(stage)
+            if (run / "eval.json").exists():
+                if (committed / where / "eval.json").exists():
+                    known += 1
+                else:
+                    copy_run(run, committed / where)
+                    new += 1
+            else:
+                unfinished.append(where)
+        resume = root / ".gpu" / "resume"
+        fresh = root / ".gpu" / "resume.new"
+        if fresh.exists():
+            shutil.rmtree(fresh)
+        fresh.mkdir(parents=True)
+        for where in unfinished:
+            copy_run(stage / where, fresh / where, checkpoint=True)
+            copy_run(stage / where, logs / "partial" / where)
+        if resume.exists():
+            shutil.rmtree(resume)
+        fresh.rename(resume)
+        logs.mkdir(parents=True, exist_ok=True)
+        for path in stage.iterdir():
+            if path.is_file() and path.suffix in (".log", ".md"):
+                shutil.copy2(path, logs / path.name)
+    with_checkpoint = sum((resume / w / CHECKPOINT).exists() for w in unfinished)
+    print(f"{new} finished cell(s) new in {COMMITTED}, {known} already there; {len(unfinished)} unfinished run(s) "
+          f"({with_checkpoint} with a checkpoint) in .gpu/resume for the next session, their logs in "
+          f"{logs / 'partial'}; session logs in {logs}")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--root", type=Path, default=ROOT, help="the checkout (default: this script's)")
+    verbs = parser.add_subparsers(dest="verb", required=True)
+    go = verbs.add_parser("away", help="pause the cpu queue, move results/ out, slim committed cells to .gpu/")
+    go.add_argument("--stash", type=Path, default=None, help="where results/ goes (default: ../bati-results-away)")
+    go.add_argument("--no-pause", action="store_true", help="leave the cpu queue running (it must not write)")
+    verbs.add_parser("back", help="move results/ back and resume the cpu queue")
+    take = verbs.add_parser("unpack", help="a device call's files into results/paper/experiments and .gpu/resume")
+    take.add_argument("files_at", type=Path, help="the reply's files_at folder")
+    take.add_argument("--logs", type=Path, required=True, help="where the session's logs and partial runs go")
+    args = parser.parse_args(argv)
+    root = args.root.resolve()
+    try:
+        if args.verb == "away":
+            away(root, args.stash or root.parent / "bati-results-away", pause=not args.no_pause)
+        elif args.verb == "back":
+            back(root)
+        else:
+            unpack(root, args.files_at, args.logs if args.logs.is_absolute() else root / args.logs)
+    except GpuLocalError as err:
+        print(f"gpu_local {args.verb}: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
