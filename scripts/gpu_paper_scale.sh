@@ -7,7 +7,7 @@
 #   fg      (a CPU dry run)      the same work in the foreground, stopped at BUDGET_S, then packed.
 #   pack    (tests)              packs RESULTS into OUT, as each call ends.
 #   python scripts/gpu_local.py away                  # here: results/ out of the checkout (64 MiB travel limit)
-#   run(command="MODE=start FAMILIES='AntDir HalfCheetahDir' WATCH_S=555 bash scripts/gpu_paper_scale.sh",
+#   run(command="MODE=start FAMILIES='HalfCheetahDir HalfCheetahVel' FILL=kuhn WATCH_S=555 bash scripts/gpu_paper_scale.sh",
 #       carry=[".whl", ".gpu"], timeout_s=600)
 #   run(command="MODE=watch WATCH_S=<budget_left_s - 70> bash scripts/gpu_paper_scale.sh", carry=[".whl", ".gpu"],
 #       timeout_s=<budget_left_s - 30>)                                             # within 30 s of the last reply
@@ -29,6 +29,8 @@
 # $OUT/resume-<i>.tar per unfinished run's checkpoint, renewed each time a run finishes, so a call stopped at its
 # limit still returns the runs finished before. Here: `gpu_local.py unpack` (above), then `bati experiment E --scale
 # paper --report-only --out-dir results/paper/experiments` for each E of EXPERIMENTS, and `bati claims`.
+# FILL=kuhn (an experiment): while the first family's data is collected, FILL's family (FILL_FAMILY, default
+# KuhnPoker: its data takes a minute on one core) trains FILL's methods one job at a time on the idle GPU.
 # CPU dry run: MODE=fg SCALE=quick METHODS=bati SEEDS="0 1" SETTINGS="steps=200" DATA=... bash this file.
 set -u
 mode=${MODE:-fg}
@@ -82,6 +84,11 @@ work() {  # the session's work: benchmark, then family after family
     bench=$!
     collect "$1" $((cores > 1 ? cores - 1 : 1)); echo "$1 data (rc $?) after $(( $(date +%s) - start )) s"
     wait "$bench"; echo "benchmark (rc $?) after $(( $(date +%s) - start )) s"; cat "$results/bench.md"
+  elif [ -n "${FILL:-}" ]; then
+    collect "$1" $((cores > 1 ? cores - 1 : 1)) &
+    first=$!
+    fill "$first"
+    wait "$first"; echo "$1 data (rc $?) after $(( $(date +%s) - start )) s"
   else
     collect "$1" "$cores"; echo "$1 data (rc $?) after $(( $(date +%s) - start )) s"
   fi
@@ -89,27 +96,48 @@ work() {  # the session's work: benchmark, then family after family
     family=$1; shift
     [ $# -gt 0 ] && { (renice -n 10 "$BASHPID" > /dev/null; collect "$1" $((cores / 4 > 0 ? cores / 4 : 1))) & }
     for experiment in $experiments; do
-      # the methods of METHODS that this experiment runs on this family, in METHODS' order (none: skip it)
+      chosen=$(chosen_methods "$experiment" "$family") || { echo "no experiment $experiment: stopping"; break 2; }
+      [ -z "$chosen" ] && { echo "$experiment has none of the methods on $family: skipped"; continue; }
       # shellcheck disable=SC2086  # word lists on purpose
-      chosen=$(python3 - "$experiment" "$family" $methods << 'EOF'
+      run_experiment "$experiment" "$family" $chosen
+      [ $? -eq 2 ] && { echo "bad input: the other families would fail alike; stopping"; break 2; }
+    done
+    wait  # the next family's data
+  done
+  echo "all done after $(( $(date +%s) - start )) s"; touch "$results/session.done"
+}
+
+chosen_methods() {  # $1 experiment, $2 family: the methods of METHODS it runs there, in METHODS' order (maybe none)
+  # shellcheck disable=SC2086
+  python3 - "$1" "$2" $methods << 'EOF'
 import sys
 from bati.experiments.specs import get_spec
 experiment, family, methods = sys.argv[1], sys.argv[2], sys.argv[3:]
 have = {m for part in get_spec(experiment).parts if family in part.families for m in part.methods}
 print(" ".join(m for m in methods if m in have))
 EOF
-) || { echo "no experiment $experiment: stopping"; break 2; }
-      [ -z "$chosen" ] && { echo "$experiment has none of the methods on $family: skipped"; continue; }
-      log="$results/experiment-$experiment-$family.log"
-      # shellcheck disable=SC2086
-      python3 -m bati.cli experiment "$experiment" --scale "$scale" --families "$family" --methods $chosen \
-        --seeds $seeds --workers "$workers" --data-root "$data" --out-dir "$results" --settings $settings > "$log" 2>&1
-      rc=$?; echo "$family $experiment exit $rc after $(( $(date +%s) - start )) s"; tail -2 "$log"
-      [ $rc -eq 2 ] && { echo "bad input: the other families would fail alike; stopping"; break 2; }
-    done
-    wait  # the next family's data
+}
+
+run_experiment() {  # $1 experiment, $2 family, then its methods: one `bati experiment` (finished cells skipped)
+  local experiment=$1 family=$2 rc
+  shift 2
+  local log="$results/experiment-$experiment-$family.log"
+  # shellcheck disable=SC2086
+  python3 -m bati.cli experiment "$experiment" --scale "$scale" --families "$family" --methods "$@" \
+    --seeds $seeds --workers "$workers" --data-root "$data" --out-dir "$results" --settings $settings >> "$log" 2>&1
+  rc=$?; echo "$family $experiment ($*) exit $rc after $(( $(date +%s) - start )) s"; tail -2 "$log"
+  return $rc
+}
+
+fill() {  # $1: the pid of the first family's collection. The GPU idles meanwhile (~100-135 s of a 15-minute session),
+  # so FILL's experiment on FILL_FAMILY (default KuhnPoker, whose data takes ~1 minute on one core) runs one method's
+  # job at a time until that collection ends; the first family then waits for the job at hand only.
+  local family=${FILL_FAMILY:-KuhnPoker} method
+  collect "$family" 1; echo "$family data for $FILL (rc $?) after $(( $(date +%s) - start )) s"
+  for method in $(chosen_methods "$FILL" "$family"); do
+    kill -0 "$1" 2> /dev/null || break
+    run_experiment "$FILL" "$family" "$method"
   done
-  echo "all done after $(( $(date +%s) - start )) s"; touch "$results/session.done"
 }
 
 seed_results() {  # the committed cells of this scale count as finished here too: the sweep skips them; the unfinished
@@ -167,7 +195,8 @@ case $mode in
     install
     [ -e "$results/session.log" ] && { echo "work already started here: use MODE=watch"; exit 2; }
     seed_results
-    export -f work collect; export scale families experiments methods seeds workers settings data results start cores BENCH
+    export -f work collect chosen_methods run_experiment fill
+    export scale families experiments methods seeds workers settings data results start cores BENCH FILL FILL_FAMILY
     setsid nohup bash -c work > "$results/session.log" 2>&1 < /dev/null &
     watch_work;;
   watch)
