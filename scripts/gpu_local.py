@@ -56,6 +56,18 @@ def copy_run(src: Path, dest: Path, files=None, checkpoint: bool = False) -> Non
             shutil.copy2(path, dest / path.name)
 
 
+def ancestors() -> set[int]:
+    """This process and the ones above it (a shell whose command line names the pattern must not be stopped)."""
+    pids, pid = set(), os.getpid()
+    while pid > 1 and pid not in pids:
+        pids.add(pid)
+        try:
+            pid = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            break
+    return pids
+
+
 def paused_pids(root: Path) -> Path:
     return root / ".gpu" / "paused.json"
 
@@ -77,7 +89,7 @@ def away(root: Path, stash: Path, pause: bool) -> None:
     pids = []
     if pause:
         found = subprocess.run(["pgrep", "-f", QUEUE_PATTERN], capture_output=True, text=True).stdout.split()
-        pids = [int(p) for p in found if int(p) != os.getpid()]
+        pids = [int(p) for p in found if int(p) not in ancestors()]
         for pid in pids:
             os.kill(pid, signal.SIGSTOP)
     paused_pids(root).parent.mkdir(exist_ok=True)

@@ -123,3 +123,12 @@ def test_away_leaves_a_slim_copy_of_the_committed_cells_and_back_restores_result
     assert done.returncode == 0, done.stderr
     assert (root / "results" / "cpu" / "big.jsonl").exists() and not stash.exists()
     assert gpu_local(root, "back").returncode == 2
+
+
+def test_away_never_pauses_the_processes_that_called_it():
+    sys.path.insert(0, str(SCRIPTS))
+    try:
+        import gpu_local
+    finally:
+        sys.path.remove(str(SCRIPTS))
+    assert {os.getpid(), os.getppid()} <= gpu_local.ancestors()
