@@ -117,6 +117,7 @@ def back(root: Path) -> None:
         except ProcessLookupError:
             pass
     record.unlink()
+    shutil.rmtree(root / ".gpu" / "committed", ignore_errors=True)  # stale once results/ is back: the calls use it first
     print(f"results/ back from {stash}; {len(state['pids'])} queue process(es) resumed")
 
 

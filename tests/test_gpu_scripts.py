@@ -122,6 +122,7 @@ def test_away_leaves_a_slim_copy_of_the_committed_cells_and_back_restores_result
     done = gpu_local(root, "back")
     assert done.returncode == 0, done.stderr
     assert (root / "results" / "cpu" / "big.jsonl").exists() and not stash.exists()
+    assert not (root / ".gpu" / "committed").exists()  # it would hide cells committed later from the next calls
     assert gpu_local(root, "back").returncode == 2
 
 
