@@ -142,7 +142,10 @@ def unpack(root: Path, files_at: Path, logs: Path) -> None:
         stage = Path(tmp)
         for archive in [pack, *sorted(files_at.glob("resume-*.tar"))]:
             with tarfile.open(archive) as tar:
-                tar.extractall(stage, filter="data")
+                if hasattr(tarfile, "data_filter"):  # Python >= 3.11.4: no member may leave the stage
+                    tar.extractall(stage, filter="data")
+                else:
+                    tar.extractall(stage)
         new, known, unfinished = 0, 0, []
         for run in run_dirs(stage):
             where = run.relative_to(stage)
