@@ -173,7 +173,7 @@ pack_resume() {  # the checkpoint of each unfinished run, a file each (~4-5 MB a
   local i=0 checkpoint
   while IFS= read -r checkpoint; do
     [ -e "$(dirname "$checkpoint")/eval.json" ] && continue
-    [ $i -ge "${RESUME_FILES:-6}" ] && { echo "more unfinished runs than RESUME_FILES: the others restart" >&2; break; }
+    [ $i -ge "${RESUME_FILES:-3}" ] && { echo "more unfinished runs than RESUME_FILES: the others restart" >&2; break; }
     tar cf "$out/resume-$i.tar.part" -C "$results" "${checkpoint#"$results"/}" && mv "$out/resume-$i.tar.part" "$out/resume-$i.tar"
     i=$((i + 1))
   done < <(find "$results" -name checkpoint.msgpack | sort)
