@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
 import flax
 import jax
@@ -496,3 +497,35 @@ def test_methods_that_train_otherwise_cannot_be_evaluated_alongside(tmp_path, al
     assert not (tmp_path / "r").exists()
     with pytest.raises(ValueError, match="named <method>-seed<seed>"):
         train_seeds(_config(tmp_path, "x"), (0,), show_progress=False, also=("bati-r",))
+
+
+def test_the_first_evaluation_prepared_beside_training_gives_the_same_numbers(tmp_path, point_data, monkeypatch):
+    # Evaluator.warm_up compiles the evaluation and starts its envs in a thread while the first chunks train
+    warm = train_seeds(_config(tmp_path, "unused"), (0, 1), show_progress=False, runs_dir=tmp_path / "warm",
+                       also=("bati-r",))
+    skipped = []
+    monkeypatch.setattr(Evaluator, "warm_up", lambda self, *args: skipped.append(type(self).__name__))
+    cold = train_seeds(_config(tmp_path, "unused"), (0, 1), show_progress=False, runs_dir=tmp_path / "cold",
+                       also=("bati-r",))
+    assert skipped == ["Evaluator", "Evaluator"]  # the run's evaluator and bati-r's, once each
+    for name in ("bati-seed0", "bati-seed1", "bati-r-seed0", "bati-r-seed1"):
+        assert _evals(tmp_path / "warm" / name) == _evals(tmp_path / "cold" / name)
+    assert [r["p_test_return"] for r in warm] == [r["p_test_return"] for r in cold]
+
+
+def test_an_evaluator_waits_for_its_warm_up_and_a_failed_one_is_left_to_the_evaluation(point_data):
+    config = _config(Path("unused"), "unused").resolved()
+    trainer = Trainer(config, point_data, family_of("PointGoal"))
+    evaluator = Evaluator(trainer.method, trainer.iql, point_data, config.context_length,
+                          family=get_family("PointGoal"))
+    state = trainer.init(jax.random.PRNGKey(0))
+    stacked = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], state)
+    evaluator.warm_up(stacked, jax.random.PRNGKey(1)[None], [0])
+    result = evaluator.evaluate_runs(stacked, jax.random.PRNGKey(1)[None], [0])[0]
+    assert not evaluator._warming.is_alive() and len(evaluator.envs) == len(point_data.test_tasks)
+    assert result.returns["p_test"].shape == (len(point_data.test_tasks),)
+    broken = Evaluator(trainer.method, trainer.iql, point_data, config.context_length, family=get_family("PointGoal"))
+    broken.warm_up(None, None, [0])  # raises in its thread, silently: the evaluation meets the real problem
+    with pytest.raises(AttributeError):
+        broken.evaluate_runs(None, None, [0])
+    evaluator.close(), broken.close()

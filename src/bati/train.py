@@ -377,11 +377,30 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
     states = None if alone else jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[r.state for r in runs])
 
     def stacked():
-        return jax.tree_util.tree_map(lambda x: x[None], state) if alone else states
+        return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], state) if alone else states
 
     def sync_runs():
         for j, run in enumerate(runs):
             run.state = state if alone else jax.tree_util.tree_map(lambda x, j=j: x[j], states)
+
+    def evaluation_inputs(at: int, members: list[int] | None = None):
+        """The stacked states, keys and env seeds of an evaluation at step `at` (of the runs `members` only)."""
+        keys = jnp.stack([jax.random.fold_in(r.base_key, 2 + at) for r in runs])
+        seeds = [r.config.seed * 7919 + at for r in runs]
+        if members is None or len(members) == len(runs):
+            return stacked(), keys, seeds
+        picked = jnp.asarray(members)
+        return (jax.tree_util.tree_map(lambda x: x[picked], stacked()), keys[picked], [seeds[j] for j in members])
+
+    def followers(method: str) -> list[int]:
+        """The runs that `method` is evaluated alongside."""
+        return [j for j, run in enumerate(runs) if any(a.method == method for a in run.alongside)]
+
+    if (step // c.eval_every + 1) * c.eval_every <= until or until == c.steps:  # an evaluation comes: prepare it
+        evaluator.warm_up(*evaluation_inputs(step))
+        for method, companion in (companions or {}).items():
+            if followers(method):
+                companion.warm_up(*evaluation_inputs(step, followers(method)))
 
     while step < until:
         length = min(c.log_every, until - step)
@@ -402,22 +421,17 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
             for sink in run.sinks:
                 sink.log(step, record, "train")
         if step % c.eval_every == 0 or step == c.steps:
-            keys = jnp.stack([jax.random.fold_in(r.base_key, 2 + step) for r in runs])
-            results = evaluator.evaluate_runs(stacked(), keys, [r.config.seed * 7919 + step for r in runs])
+            results = evaluator.evaluate_runs(*evaluation_inputs(step))
             for run, result in zip(runs, results):
                 append_jsonl(run.out / "eval.jsonl", {"step": step, **result.summary()})
                 for sink in run.sinks:
                     sink.log(step, result.summary(), "eval")
             for method, companion in (companions or {}).items():  # the same states and keys, their inference
-                members = [j for j, run in enumerate(runs) if any(a.method == method for a in run.alongside)]
+                members = followers(method)
                 if not members:
                     continue
                 began = time.perf_counter()
-                picked = jnp.asarray(members)
-                states_of = stacked() if len(members) == len(runs) else \
-                    jax.tree_util.tree_map(lambda x, picked=picked: x[picked], stacked())
-                outcomes = companion.evaluate_runs(states_of, keys[picked],
-                                                   [runs[j].config.seed * 7919 + step for j in members])
+                outcomes = companion.evaluate_runs(*evaluation_inputs(step, members))
                 for j, result in zip(members, outcomes):
                     out = next(a.out_dir for a in runs[j].alongside if a.method == method)
                     append_jsonl(out / "eval.jsonl", {"step": step, **result.summary()})
