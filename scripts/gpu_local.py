@@ -94,7 +94,13 @@ def away(root: Path, stash: Path, pause: bool) -> None:
             os.kill(pid, signal.SIGSTOP)
     paused_pids(root).parent.mkdir(exist_ok=True)
     paused_pids(root).write_text(json.dumps({"pids": pids, "stash": str(stash.resolve())}))
-    shutil.move(str(results), str(stash))
+    try:
+        shutil.move(str(results), str(stash))
+    except OSError as err:  # nothing moved: let the queue go on
+        for pid in pids:
+            os.kill(pid, signal.SIGCONT)
+        paused_pids(root).unlink()
+        raise GpuLocalError(f"could not move {results} to {stash}: {err}") from err
     print(f"results/ moved to {stash}; {len(run_dirs(slim))} committed cell(s) in .gpu/committed; "
           f"{len(pids)} queue process(es) paused; travels ~{travel_size(root) / 2**20:.1f} MiB with .whl and .gpu")
     if travel_size(root) > TRAVEL_LIMIT:
