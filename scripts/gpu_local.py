@@ -178,8 +178,7 @@ def unpack(root: Path, files_at: Path, logs: Path) -> None:
         for path in stage.iterdir():
             if path.is_file() and path.suffix in (".log", ".md"):
                 shutil.copy2(path, logs / path.name)
-        experiments = sorted({p.stem.split("-")[1] for p in stage.glob("experiment-*-*.log")} |
-                             {p.name.removesuffix(".sweep.json") for p in stage.glob("*.sweep.json")})
+        experiments = sorted(p.name.removesuffix(".sweep.json") for p in stage.glob("*.sweep.json"))
     with_checkpoint = sum((resume / w / CHECKPOINT).exists() for w in unfinished)
     print(f"{new} finished cell(s) new in {COMMITTED}, {known} already there; {len(unfinished)} unfinished run(s) "
           f"({with_checkpoint} with a checkpoint) in .gpu/resume for the next session, their logs in "

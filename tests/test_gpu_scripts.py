@@ -42,7 +42,7 @@ def device_results(tmp_path: Path) -> Path:
     write_run(results, "bati-r-seed1", finished=False, checkpoint=False)
     write_run(results, "focal-seed0", finished=True, checkpoint=False)
     (results / "session.log").write_text("AntDir main exit 0\n")
-    (results / "experiment-main-AntDir.log").write_text("experiment main: 2 cell(s) run\n")
+    (results / "context-length.sweep.json").write_text("{}")  # each experiment's status file
     return results
 
 
@@ -83,7 +83,7 @@ def test_unpack_adds_new_cells_keeps_committed_ones_and_keeps_unfinished_runs_to
     done = gpu_local(root, "unpack", str(out), "--logs", "results/paper/h200-x")
     assert done.returncode == 0, done.stderr
     assert "1 finished cell(s) new" in done.stdout and "1 already there" in done.stdout
-    assert "then: bati experiment main --scale paper --report-only" in done.stdout
+    assert "then: bati experiment context-length --scale paper --report-only" in done.stdout
     assert json.loads((committed / SETTING / "bati-seed0" / "eval.json").read_text()) == {"tag": "committed"}
     focal = committed / SETTING / "focal-seed0"
     assert sorted(p.name for p in focal.iterdir()) == ["config.json", "eval.json", "eval.jsonl", "metrics.jsonl"]
