@@ -101,9 +101,10 @@ def away(root: Path, stash: Path, pause: bool) -> None:
             os.kill(pid, signal.SIGCONT)
         paused_pids(root).unlink()
         raise GpuLocalError(f"could not move {results} to {stash}: {err}") from err
+    travels = travel_size(root)
     print(f"results/ moved to {stash}; {len(run_dirs(slim))} committed cell(s) in .gpu/committed; "
-          f"{len(pids)} queue process(es) paused; travels ~{travel_size(root) / 2**20:.1f} MiB with .whl and .gpu")
-    if travel_size(root) > TRAVEL_LIMIT:
+          f"{len(pids)} queue process(es) paused; travels ~{travels / 2**20:.1f} MiB with .whl and .gpu")
+    if travels > TRAVEL_LIMIT:
         print("warning: over the device's 64 MiB: the call will be refused", file=sys.stderr)
 
 

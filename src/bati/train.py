@@ -399,8 +399,8 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
     if (step // c.eval_every + 1) * c.eval_every <= until or until == c.steps:  # an evaluation comes: prepare it
         evaluator.warm_up(*evaluation_inputs(step))
         for method, companion in (companions or {}).items():
-            if followers(method):
-                companion.warm_up(*evaluation_inputs(step, followers(method)))
+            if members := followers(method):
+                companion.warm_up(*evaluation_inputs(step, members))
 
     while step < until:
         length = min(c.log_every, until - step)
