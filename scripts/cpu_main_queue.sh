@@ -48,11 +48,22 @@ fits() {  # $1: what (a method, or collect), $2: how many cells (default 1); tru
   echo "=== skipped: $1 ($need min) would not finish before STOP_AT $(date -u -d "@$stop_at") $(date -u)"
   return 1
 }
-collect() {  # $1 family, the rest: more options
-  local family=$1; shift
-  python -m bati.cli data info --family "$family" --scale paper --root "$data_root" "$@" > /dev/null 2>&1 && return 0
-  fits collect || return 1
-  python -m bati.cli data collect --family "$family" --scale paper --workers 2 --root "$data_root" "$@" || exit 1
+# The paper data a family's jobs need is collected when the first of them is to run, not before: a fresh machine
+# has no data, and a family (or a noise setting) whose jobs are all finished costs no collection (~15-40 min each).
+needs=()  # the collections the next jobs need: "family [options]" each (set by `collect`, emptied by a new family)
+collect() {  # $1 family, the rest: more options; the data the following jobs need (collected by `have_data`)
+  needs+=("$*")
+}
+have_data() {  # collects what `needs` names and is missing; false when a collection would not finish before STOP_AT
+  local want
+  for want in "${needs[@]}"; do
+    # shellcheck disable=SC2086  # "family --noise e": split into the options
+    python -m bati.cli data info --scale paper --root "$data_root" --family $want > /dev/null 2>&1 && continue
+    fits collect || return 1
+    echo "=== collect $want $(date -u)"
+    python -m bati.cli data collect --scale paper --workers 2 --root "$data_root" --family $want || exit 1
+  done
+  needs=()  # collected: the family's later jobs need no check
 }
 data_root=${1:-data}
 out_dir=${2:-$(pwd)/results/cpu/experiments}
@@ -73,6 +84,7 @@ job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.
     # finished at the queue's start (its own plans, below): skipped here, without a `bati experiment` to say so
     [ "$*" = "--out-dir $out_dir" ] && finished "$experiment" "$family" "$seed" $methods && continue
     fits "${methods// /+}" "$cells" || continue
+    have_data || continue
     echo "=== $family ${methods// /+} seed $seed ($experiment $*) $(date -u)"
     python -m bati.cli experiment "$experiment" --scale cpu --families "$family" --methods $methods --seeds "$seed" \
       --data-root "$data_root" --workers 1 "$@"
@@ -129,16 +141,15 @@ for job in $interrupted; do  # the cut seed only: the others come in their phase
   IFS=: read -r experiment family method seed <<< "$job"
   seeds=$seed job "$experiment" "$family" "$method" --out-dir "$out_dir"
 done
-if collect AntDir; then
-  for method in csro er-trl; do job main AntDir "$method" --out-dir "$out_dir"; done
-fi
+needs=(); collect AntDir
+for method in csro er-trl; do job main AntDir "$method" --out-dir "$out_dir"; done
 noise() {  # $@: the methods of the AntDir noise ablation to run (eps 0 and 0.5; eps 1's cells are the main table's)
-  collect AntDir --noise 0 && collect AntDir --noise 0.5 || return
+  needs=(); collect AntDir --noise 0; collect AntDir --noise 0.5
   for method in "$@"; do job noise AntDir "$method" --out-dir "$out_dir"; done
 }
 main_phase() {  # $1: the methods, each on every family (or on the families $2)
   for family in ${2:-$families}; do
-    collect "$family" || continue
+    needs=(); collect "$family"
     for method in $1; do job main "$family" "$method" --out-dir "$out_dir"; done
   done
 }
@@ -153,6 +164,7 @@ main_phase "$phase1a" "AntDir HalfCheetahVel HalfCheetahDir"  # the families who
 # alongside, and FOCAL) before the last two families' data; their other baselines come with phase 1b's.
 ablations() {  # $@: the methods of each of the two ablations
   [ -n "${SKIP_ABLATIONS:-}" ] && return
+  needs=()  # their data (other noise settings) is collected by their sweeps
   for method in "$@"; do job context-length HalfCheetahDir "$method" --out-dir "$out_dir"; done
   for method in "$@"; do job ood-tasks AntDir "$method" --out-dir "$out_dir"; done
 }
@@ -164,7 +176,8 @@ ablations csro unicorn recon bati-r  # bati-r: the seeds whose BATI run finished
 noise ${NOISE_REST:-bati-r csro unicorn recon}
 # FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the
 # baselines' fall on p_test? Its own output directory, so the main table's report is not touched.
-if [ -z "${SKIP_ABLATIONS:-}" ] && [ -d "$data_root/AntDir" ]; then
+if [ -z "${SKIP_ABLATIONS:-}" ]; then
+  needs=(); collect AntDir
   job main AntDir focal --settings focal.distance=root-mean --out-dir "$(dirname "$out_dir")/focal-distance"
 fi
 main_phase "$phase2"

@@ -17,10 +17,18 @@ from bati.experiments.specs import get_spec, plan_experiment
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "cpu_main_queue.sh"
 STUB = """#!/bin/sh
-case "$1 $2" in "-m bati.cli") echo "$*" >> "$QUEUE_CALLS"; exit 0;; esac
+case "$1 $2" in "-m bati.cli")
+  echo "$*" >> "$QUEUE_CALLS"; args="$*"; data=${args#*--family }
+  case "$3 $4 $NO_DATA" in
+    "data collect 1") echo "$data" >> "$QUEUE_CALLS.data";;
+    "data info 1") grep -qxF -- "$data" "$QUEUE_CALLS.data" 2> /dev/null || exit 1;;
+  esac
+  exit 0;;
+esac
 exec "$REAL_PYTHON" "$@"
 """
-"""A `python` that records the queue's `bati` commands (and succeeds) and runs its other Python (its questions about
+"""A `python` that records the queue's `bati` commands (and succeeds; with NO_DATA=1, `bati data info` fails
+for data not collected yet: a fresh machine) and runs its other Python (its questions about
 the plans and the families) with the real interpreter."""
 
 pytestmark = pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
@@ -36,6 +44,7 @@ def run_queue(tmp_path: Path, **env: str) -> tuple[list[tuple[str, str, str, str
     stub.chmod(0o755)
     calls = tmp_path / "calls.log"
     calls.unlink(missing_ok=True)
+    Path(f"{calls}.data").unlink(missing_ok=True)
     full_env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}", "QUEUE_CALLS": str(calls),
                 "REAL_PYTHON": sys.executable, "SEEDS": "0", **env}
     out = subprocess.run(["bash", str(SCRIPT), str(tmp_path / "data"), str(tmp_path / "out" / "experiments")],
@@ -174,3 +183,20 @@ def test_a_job_finished_at_the_start_is_skipped_without_starting_bati(tmp_path):
     calls = (tmp_path / "calls.log").read_text()
     assert "main --scale cpu --families AntDir --methods csro " not in calls
     assert "main --scale cpu --families AntDir --methods er-trl " not in calls  # nor in phase 2
+
+
+def test_data_is_collected_only_for_jobs_to_run(tmp_path):
+    # a fresh machine (no data): AntDir's main data is not collected for its finished CSRO and ER-TRL jobs; the first
+    # collections are the noise ablation's, just before its first job
+    for method in ("csro", "er-trl"):
+        run = planned_run(tmp_path, "main", "AntDir", method)
+        run.mkdir(parents=True)
+        (run / "eval.json").write_text("{}")
+    run_queue(tmp_path, NO_DATA="1")
+    calls = [line for line in (tmp_path / "calls.log").read_text().splitlines()
+             if " data collect " in line or " experiment " in line and "--report-only" not in line]
+    assert "--family AntDir --noise 0" in calls[0] and "--family AntDir --noise 0.5" in calls[1]
+    assert " experiment noise " in calls[2] and "--methods bati " in calls[2]
+    collections = [line.split("--family ")[1] for line in calls if " data collect " in line]
+    assert len(collections) == len(set(collections))  # each once (later jobs find it)
+    assert set(collections) == {"AntDir --noise 0", "AntDir --noise 0.5", "AntDir", *FAMILIES[1:]}
