@@ -30,7 +30,8 @@
 # estimate (minutes below: measured on this project's 2-core machines with other work beside, docs/performance.md)
 # would not finish by then is skipped, and the queue goes on to the next that fits: a job cut by the end of a
 # session is lost with its machine. The skipped ones come first again in the next session (finished cells are
-# skipped in seconds).
+# skipped in seconds). PACE (percent, default 100): scales those estimates, e.g. PACE=50 when nothing else will use
+# the cores (a seed on free cores takes about half: AntDir BATI 12-16 min, ER-TRL 38-44 min; results/cpu/experiments).
 set -u
 while [ -n "${WAIT_PID:-}" ] && kill -0 "$WAIT_PID" 2> /dev/null; do sleep 20; done
 stop_at=${STOP_AT:-}
@@ -43,7 +44,7 @@ minutes() {  # a seed's (or, "collect", a family's paper data) estimated minutes
 }
 fits() {  # $1: what (a method, or collect), $2: how many cells (default 1); true when they would finish before STOP_AT
   [ -z "$stop_at" ] && return 0
-  local need=$(( ${2:-1} * $(minutes "$1") ))
+  local need=$(( ${2:-1} * $(minutes "$1") * ${PACE:-100} / 100 ))
   [ $(( $(date +%s) + 60 * need )) -le "$stop_at" ] && return 0
   echo "=== skipped: $1 ($need min) would not finish before STOP_AT $(date -u -d "@$stop_at") $(date -u)"
   return 1

@@ -98,6 +98,9 @@ def test_stop_at_skips_what_would_not_finish(tmp_path):
     assert "skipped: csro (100 min)" in out and "skipped: focal (90 min)" in out
     past, out = run_queue(tmp_path, STOP_AT=str(int(time.time()) - 1))
     assert past == [] and "skipped: oracle" in out
+    # on free cores (PACE=50: half the estimates) CSRO's seed (50 min) fits in the same 70 minutes
+    jobs, out = run_queue(tmp_path, STOP_AT=str(int(time.time()) + 70 * 60), PACE="50")
+    assert jobs[0] == ("main", "AntDir", "csro", "0") and "skipped: er-trl (50 min)" not in out
 
 
 def planned_run(tmp_path: Path, experiment: str, family: str, method: str, **where) -> Path:
