@@ -7,15 +7,23 @@ Each report names the command that wrote it (`- command: bati experiment NAME ..
 check copies OUT's committed files into a scratch directory, reruns that command there with `--report-only`
 (nothing is trained; nothing under results/ is touched) and compares the new report.md and table.csv with the
 committed ones, the command line aside (a one-seed job's report names its `--seeds`; the rerun covers every
-seed, which is what the committed report should hold too). One line per report: `same`, `differs` (with the
-first differing lines) or `skipped` (a report of `bati report` / `bati run`, which names no command); exit 1 when
-any differs. About 2 minutes per report on a 2-core CPU (rliable's bootstrap and the figures).
+seed, which is what the committed report should hold too). A report of some methods or families (a job with
+`--methods` / `--families`, or a folder renamed after one: reports once covered the job's cells only, now every
+cell of the experiment) passes when each of its table rows is among the regenerated ones, number for number.
+A folder's RERUN file gives, on its first line, the settings its cells ran with where they are no longer the
+defaults (e.g. `--settings csro.club_negatives=any-task`), added to the rerun; rows are checked then too (the rerun
+splits such cells into setting tables of their own). A report of `bati report DIR` (also `bati run`'s), which says so in its first lines, is rebuilt from a copy of DIR
+and compared whole. One line per report: `same`, `differs` (with the first differing lines), `frozen` (the
+folder's FROZEN file says why today's plans cannot reproduce it, e.g. a family version since replaced) or
+`skipped` (a report that names no command); exit 1 when any differs. About 1-2 minutes per report on a
+2-core CPU (rliable's bootstrap and the figures).
 """
 
 from __future__ import annotations
 
 import argparse
 import difflib
+import re
 import shlex
 import shutil
 import subprocess
@@ -44,35 +52,92 @@ def without(args: list[str], name: str) -> list[str]:
     return args[:start] + args[end:]
 
 
+def with_settings(args: list[str], more: list[str]) -> list[str]:
+    """args with the options `more`; the values of a second `--settings` join the first's (argparse would keep the
+    last option's values alone)."""
+    if more[:1] != ["--settings"] or "--settings" not in args:
+        return args + more
+    end = next((i for i in range(args.index("--settings") + 1, len(args)) if args[i].startswith("--")), len(args))
+    return args[:end] + more[1:] + args[end:]
+
+
 def compared_lines(path: Path) -> list[str]:
-    return [line for line in path.read_text().splitlines() if not line.startswith("- command:")]
+    """A report's lines but its command (the rerun's names its own out dir and every seed) and the wording of its
+    wall-time line (older reports word the same number differently)."""
+    lines = []
+    for line in path.read_text().splitlines():
+        if line.startswith("- command:"):
+            continue
+        if line.startswith("- summed wall time"):
+            line = line.split(" (")[0]
+        lines.append(line)
+    return lines
+
+
+def rows(path: Path) -> list[str]:
+    """A table.csv's rows, header aside."""
+    return path.read_text().splitlines()[1:] if path.exists() else []
 
 
 def check(report: Path, scratch: Path, root: Path = ROOT) -> tuple[str, list[str]]:
     """The verdict on one committed report (under `root`, the project) and the lines that say why."""
+    folder = report.parent
+    if (folder / "FROZEN").exists():  # a snapshot that today's plans cannot reproduce, and why
+        return "frozen", (folder / "FROZEN").read_text().strip().splitlines()
     args = command_of(report)
     if args is None:
-        return "skipped", ["names no `bati experiment` command (a `bati report` or `bati run` report)"]
-    out_dir = report.parent.parent  # the report lies in OUT/<experiment>/ (or a renamed copy of that folder)
+        return check_bati_report(report, scratch, root)
+    experiment = args[1]
+    out_dir = folder.parent  # the report lies in OUT/<experiment>/ (or a renamed copy of that folder)
     relative = out_dir.relative_to(root)
     copy = scratch / relative
     shutil.copytree(out_dir, copy, ignore=shutil.ignore_patterns("*.png", "checkpoint*", "*.lock"))
     # every seed (a one-seed job's report is its seed's only); the out dir relative to the scratch root, as the
     # committed command is run from the project root
     rerun = without(without(args, "--seeds"), "--out-dir") + ["--out-dir", str(relative), "--report-only"]
+    # RERUN: the settings its cells ran with where they are no longer the defaults (its first line; the others say
+    # why): the rerun's report then splits those cells into setting tables of their own, so rows are checked
+    extra = (folder / "RERUN").read_text().splitlines() if (folder / "RERUN").exists() else []
+    rerun = with_settings(rerun, shlex.split(extra[0])) if extra else rerun
     done = subprocess.run([sys.executable, "-m", "bati.cli", *rerun], cwd=scratch, capture_output=True, text=True)
     if done.returncode != 0:
         return "failed", (done.stderr or done.stdout).strip().splitlines()[-3:]
+    regenerated = copy / experiment
+    # A job of some methods or families (or a renamed copy of one's report) once reported those alone; a report
+    # now covers every cell of the experiment: its rows must be among the regenerated ones, number for number.
+    subset = folder.name != experiment or "--methods" in args or "--families" in args or bool(extra)
+    committed_rows, new_rows = rows(folder / "table.csv"), set(rows(regenerated / "table.csv"))
+    lost = [f"table.csv: committed row not regenerated: {row}" for row in committed_rows if row not in new_rows]
+    if subset:
+        note = (f"(rows checked, rerun with RERUN's `{extra[0]}`)" if extra else "(rows checked: a report of some "
+                f"methods or families, or a renamed copy of `{experiment}`'s folder)")
+        return ("differs" if lost else "same"), [note] + lost[:6]
     differences = []
     for file in COMPARED:
-        committed, regenerated = report.parent / file, copy / args[1] / file
-        if not committed.exists():
-            continue
-        diff = list(difflib.unified_diff(compared_lines(committed), compared_lines(regenerated), "committed",
-                                         "regenerated", n=0, lineterm=""))
-        differences += [f"{file}: {line}" for line in diff[2:8]]
-    renamed = [] if report.parent.name == args[1] else [f"(a renamed copy of `{args[1]}`'s report folder)"]
-    return ("differs" if differences else "same"), renamed + differences
+        committed = folder / file
+        if committed.exists():
+            diff = list(difflib.unified_diff(compared_lines(committed), compared_lines(regenerated / file),
+                                             "committed", "regenerated", n=0, lineterm=""))
+            differences += [f"{file}: {line}" for line in diff[2:8]]
+    return ("differs" if differences else "same"), differences
+
+
+def check_bati_report(report: Path, scratch: Path, root: Path) -> tuple[str, list[str]]:
+    """A report of `bati report DIR` (also `bati run`'s): rerun into a copy of DIR, compare report.md whole."""
+    match = re.search(r"Generated by `bati report` from .* under `([^`]+)`", report.read_text())
+    if match is None:
+        return "skipped", ["names no command (neither `bati experiment` nor `bati report`)"]
+    source = Path(match[1])
+    copy = scratch / source
+    shutil.copytree(root / source, copy, ignore=shutil.ignore_patterns("*.png", "checkpoint*", "*.lock"))
+    out = scratch / "regenerated"
+    done = subprocess.run([sys.executable, "-m", "bati.cli", "report", str(source), "--out-dir", str(out)], cwd=scratch,
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        return "failed", (done.stderr or done.stdout).strip().splitlines()[-3:]
+    diff = list(difflib.unified_diff(compared_lines(report), compared_lines(out / "report.md"), "committed",
+                                     "regenerated", n=0, lineterm=""))
+    return ("differs" if diff else "same"), [f"report.md: {line}" for line in diff[2:8]]
 
 
 def main() -> None:

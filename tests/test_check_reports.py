@@ -25,9 +25,27 @@ def test_check_reports_finds_a_committed_report_that_does_not_regenerate(tmp_pat
     done = subprocess.run(check, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "same     results/quick/experiments/ood-tasks/report.md" in done.stdout
-    assert "skipped  results/other/report.md" in done.stdout
+    assert "skipped  results/other/report.md" in done.stdout  # names no command
     report.write_text(report.read_text().replace("cells finished: 0 of", "cells finished: 1 of"))
     done = subprocess.run(check + [str(report)], capture_output=True, text=True, timeout=300)
     assert done.returncode == 1 and "differs  results/quick/experiments/ood-tasks/report.md" in done.stdout
     assert "-- cells finished: 1 of" in done.stdout and "+- cells finished: 0 of" in done.stdout
     assert "cells finished: 1 of" in report.read_text()  # the committed report untouched: the rerun ran in a copy
+    (report.parent / "FROZEN").write_text("runs of a family version since replaced\n")
+    done = subprocess.run(check + [str(report)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and "frozen   results/quick/experiments/ood-tasks/report.md" in done.stdout
+    assert "runs of a family version since replaced" in done.stdout
+
+
+def test_a_rerun_setting_joins_the_committed_commands_settings():
+    sys.path.insert(0, str(SCRIPTS))
+    try:
+        from check_reports import with_settings, without
+    finally:
+        sys.path.remove(str(SCRIPTS))
+    args = ["experiment", "main", "--settings", "steps=12000", "--seeds", "1", "--out-dir", "out"]
+    assert with_settings(args, ["--settings", "csro.club_negatives=any-task"]) == [
+        "experiment", "main", "--settings", "steps=12000", "csro.club_negatives=any-task", "--seeds", "1", "--out-dir",
+        "out"]
+    assert with_settings(["experiment", "kuhn"], ["--settings", "a=1"]) == ["experiment", "kuhn", "--settings", "a=1"]
+    assert without(without(args, "--seeds"), "--out-dir") == ["experiment", "main", "--settings", "steps=12000"]

@@ -321,3 +321,15 @@ def test_a_method_setting_goes_only_to_the_methods_that_read_it(tmp_path):
     with pytest.raises(SweepError, match=r"focal.distance is read by focal only; none of the grid's methods "
                                          r"\(bati, oracle\) reads it"):
         expand(Grid(methods=("bati", "oracle"), settings=("focal.distance=root-mean",)), tmp_path)
+
+
+def test_an_int_for_a_float_setting_is_the_same_cell_as_its_float(tmp_path):
+    # `ertrl.metric_weight=1` and `=1.0` are one setting: one run directory (the committed quick ER-TRL cells are
+    # found by either); an int field stays an int
+    one = {c.config.method: c for c in expand(Grid(methods=("er-trl",), settings=("ertrl.metric_weight=1",)), tmp_path)}
+    same = {c.config.method: c for c in expand(Grid(methods=("er-trl",), settings=("ertrl.metric_weight=1.0",)),
+                                                tmp_path)}
+    assert one["er-trl"].id == same["er-trl"].id and one["er-trl"].config.out_dir == same["er-trl"].config.out_dir
+    assert one["er-trl"].config.ertrl.metric_weight == 1.0 and isinstance(one["er-trl"].config.ertrl.metric_weight, float)
+    steps = expand(Grid(methods=("bati",), settings=("steps=5",)), tmp_path)[0].config.steps
+    assert steps == 5 and isinstance(steps, int)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args, get_type_hints
 
 from bati.checks import check_hidden_dims, check_integer, check_number
 from bati.data.own import OWN_FAMILY
@@ -343,8 +343,20 @@ def apply_settings(config: TrainConfig, settings: dict[str, Any]) -> TrainConfig
             nested.setdefault(section, {})[name] = value
         else:
             plain[key] = value
-    sections = {section: replace(getattr(config, section), **values) for section, values in nested.items()}
-    return replace(config, **plain, **sections)
+    sections = {section: replace(holder, **_typed(holder, values))
+                for section, values in nested.items() for holder in [getattr(config, section)]}
+    return replace(config, **_typed(config, plain), **sections)
+
+
+def _typed(holder: Any, values: dict[str, Any]) -> dict[str, Any]:
+    """`values` for the fields of the dataclass `holder`, an int given for a float field as that float: `x=1` and
+    `x=1.0` are one setting (one config, one cell), not two."""
+    hints = get_type_hints(type(holder))
+    def typed(name: str, value: Any) -> Any:
+        hint = hints.get(name)
+        is_float = hint is float or float in get_args(hint)
+        return float(value) if is_float and isinstance(value, int) and not isinstance(value, bool) else value
+    return {name: typed(name, value) for name, value in values.items()}
 
 
 def family_of(name: str, context_length: int | None = None):
