@@ -43,13 +43,14 @@ def command_of(report: Path) -> list[str] | None:
     return None
 
 
+def values_end(args: list[str], name: str) -> int:
+    """The index after the values of the option `name` (in args): the next option's, or the end."""
+    return next((i for i in range(args.index(name) + 1, len(args)) if args[i].startswith("--")), len(args))
+
+
 def without(args: list[str], name: str) -> list[str]:
     """args without the option `name` and its values (up to the next option)."""
-    if name not in args:
-        return args
-    start = args.index(name)
-    end = next((i for i in range(start + 1, len(args)) if args[i].startswith("--")), len(args))
-    return args[:start] + args[end:]
+    return args[:args.index(name)] + args[values_end(args, name):] if name in args else args
 
 
 def with_settings(args: list[str], more: list[str]) -> list[str]:
@@ -57,7 +58,7 @@ def with_settings(args: list[str], more: list[str]) -> list[str]:
     last option's values alone)."""
     if more[:1] != ["--settings"] or "--settings" not in args:
         return args + more
-    end = next((i for i in range(args.index("--settings") + 1, len(args)) if args[i].startswith("--")), len(args))
+    end = values_end(args, "--settings")
     return args[:end] + more[1:] + args[end:]
 
 
@@ -74,6 +75,21 @@ def compared_lines(path: Path) -> list[str]:
     return lines
 
 
+def differences(committed: Path, regenerated: Path) -> list[str]:
+    """The first lines of the diff between a committed report file and its regenerated twin (compared_lines)."""
+    diff = difflib.unified_diff(compared_lines(committed), compared_lines(regenerated), "committed", "regenerated",
+                                n=0, lineterm="")
+    return [f"{committed.name}: {line}" for line in list(diff)[2:8]]
+
+
+def rerun_in(scratch: Path, root: Path, source: Path, args: list[str]) -> list[str] | None:
+    """Copies root/source (its result files) to scratch/source and runs `bati ARGS` in scratch; None when it
+    succeeded, else the last lines it printed."""
+    shutil.copytree(root / source, scratch / source, ignore=shutil.ignore_patterns("*.png", "checkpoint*", "*.lock"))
+    done = subprocess.run([sys.executable, "-m", "bati.cli", *args], cwd=scratch, capture_output=True, text=True)
+    return None if done.returncode == 0 else (done.stderr or done.stdout).strip().splitlines()[-3:]
+
+
 def rows(path: Path) -> list[str]:
     """A table.csv's rows, header aside."""
     return path.read_text().splitlines()[1:] if path.exists() else []
@@ -88,10 +104,7 @@ def check(report: Path, scratch: Path, root: Path = ROOT) -> tuple[str, list[str
     if args is None:
         return check_bati_report(report, scratch, root)
     experiment = args[1]
-    out_dir = folder.parent  # the report lies in OUT/<experiment>/ (or a renamed copy of that folder)
-    relative = out_dir.relative_to(root)
-    copy = scratch / relative
-    shutil.copytree(out_dir, copy, ignore=shutil.ignore_patterns("*.png", "checkpoint*", "*.lock"))
+    relative = folder.parent.relative_to(root)  # the report lies in OUT/<experiment>/ (or a renamed copy of it)
     # every seed (a one-seed job's report is its seed's only); the out dir relative to the scratch root, as the
     # committed command is run from the project root
     rerun = without(without(args, "--seeds"), "--out-dir") + ["--out-dir", str(relative), "--report-only"]
@@ -99,10 +112,10 @@ def check(report: Path, scratch: Path, root: Path = ROOT) -> tuple[str, list[str
     # why): the rerun's report then splits those cells into setting tables of their own, so rows are checked
     extra = (folder / "RERUN").read_text().splitlines() if (folder / "RERUN").exists() else []
     rerun = with_settings(rerun, shlex.split(extra[0])) if extra else rerun
-    done = subprocess.run([sys.executable, "-m", "bati.cli", *rerun], cwd=scratch, capture_output=True, text=True)
-    if done.returncode != 0:
-        return "failed", (done.stderr or done.stdout).strip().splitlines()[-3:]
-    regenerated = copy / experiment
+    failure = rerun_in(scratch, root, relative, rerun)
+    if failure is not None:
+        return "failed", failure
+    regenerated = scratch / relative / experiment
     # A job of some methods or families (or a renamed copy of one's report) once reported those alone; a report
     # now covers every cell of the experiment: its rows must be among the regenerated ones, number for number.
     subset = folder.name != experiment or "--methods" in args or "--families" in args or bool(extra)
@@ -112,14 +125,9 @@ def check(report: Path, scratch: Path, root: Path = ROOT) -> tuple[str, list[str
         note = (f"(rows checked, rerun with RERUN's `{extra[0]}`)" if extra else "(rows checked: a report of some "
                 f"methods or families, or a renamed copy of `{experiment}`'s folder)")
         return ("differs" if lost else "same"), [note] + lost[:6]
-    differences = []
-    for file in COMPARED:
-        committed = folder / file
-        if committed.exists():
-            diff = list(difflib.unified_diff(compared_lines(committed), compared_lines(regenerated / file),
-                                             "committed", "regenerated", n=0, lineterm=""))
-            differences += [f"{file}: {line}" for line in diff[2:8]]
-    return ("differs" if differences else "same"), differences
+    found = [line for file in COMPARED if (folder / file).exists()
+             for line in differences(folder / file, regenerated / file)]
+    return ("differs" if found else "same"), found
 
 
 def check_bati_report(report: Path, scratch: Path, root: Path) -> tuple[str, list[str]]:
@@ -127,17 +135,12 @@ def check_bati_report(report: Path, scratch: Path, root: Path) -> tuple[str, lis
     match = re.search(r"Generated by `bati report` from .* under `([^`]+)`", report.read_text())
     if match is None:
         return "skipped", ["names no command (neither `bati experiment` nor `bati report`)"]
-    source = Path(match[1])
-    copy = scratch / source
-    shutil.copytree(root / source, copy, ignore=shutil.ignore_patterns("*.png", "checkpoint*", "*.lock"))
     out = scratch / "regenerated"
-    done = subprocess.run([sys.executable, "-m", "bati.cli", "report", str(source), "--out-dir", str(out)], cwd=scratch,
-                          capture_output=True, text=True)
-    if done.returncode != 0:
-        return "failed", (done.stderr or done.stdout).strip().splitlines()[-3:]
-    diff = list(difflib.unified_diff(compared_lines(report), compared_lines(out / "report.md"), "committed",
-                                     "regenerated", n=0, lineterm=""))
-    return ("differs" if diff else "same"), [f"report.md: {line}" for line in diff[2:8]]
+    failure = rerun_in(scratch, root, Path(match[1]), ["report", match[1], "--out-dir", str(out)])
+    if failure is not None:
+        return "failed", failure
+    found = differences(report, out / "report.md")
+    return ("differs" if found else "same"), found
 
 
 def main() -> None:

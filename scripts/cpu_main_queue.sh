@@ -51,10 +51,7 @@ fits() {  # $1: what (a method, or collect), $2: how many cells (default 1); tru
 }
 # The paper data a family's jobs need is collected when the first of them is to run, not before: a fresh machine
 # has no data, and a family (or a noise setting) whose jobs are all finished costs no collection (~15-40 min each).
-needs=()  # the collections the next jobs need: "family [options]" each (set by `collect`, emptied by a new family)
-collect() {  # $1 family, the rest: more options; the data the following jobs need (collected by `have_data`)
-  needs+=("$*")
-}
+needs=()  # the paper data the next jobs need, "family [options]" each: set before a family's jobs, emptied once at hand
 have_data() {  # collects what `needs` names and is missing; false when a collection would not finish before STOP_AT
   local want
   for want in "${needs[@]}"; do
@@ -142,15 +139,15 @@ for job in $interrupted; do  # the cut seed only: the others come in their phase
   IFS=: read -r experiment family method seed <<< "$job"
   seeds=$seed job "$experiment" "$family" "$method" --out-dir "$out_dir"
 done
-needs=(); collect AntDir
+needs=(AntDir)
 for method in csro er-trl; do job main AntDir "$method" --out-dir "$out_dir"; done
 noise() {  # $@: the methods of the AntDir noise ablation to run (eps 0 and 0.5; eps 1's cells are the main table's)
-  needs=(); collect AntDir --noise 0; collect AntDir --noise 0.5
+  needs=("AntDir --noise 0" "AntDir --noise 0.5")
   for method in "$@"; do job noise AntDir "$method" --out-dir "$out_dir"; done
 }
 main_phase() {  # $1: the methods, each on every family (or on the families $2)
   for family in ${2:-$families}; do
-    needs=(); collect "$family"
+    needs=("$family")
     for method in $1; do job main "$family" "$method" --out-dir "$out_dir"; done
   done
 }
@@ -178,7 +175,7 @@ noise ${NOISE_REST:-bati-r csro unicorn recon}
 # FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the
 # baselines' fall on p_test? Its own output directory, so the main table's report is not touched.
 if [ -z "${SKIP_ABLATIONS:-}" ]; then
-  needs=(); collect AntDir
+  needs=(AntDir)
   job main AntDir focal --settings focal.distance=root-mean --out-dir "$(dirname "$out_dir")/focal-distance"
 fi
 main_phase "$phase2"

@@ -135,4 +135,3 @@ def test_away_never_pauses_the_processes_that_called_it():
     finally:
         sys.path.remove(str(SCRIPTS))
     assert {os.getpid(), os.getppid()} <= gpu_local.ancestors()
-

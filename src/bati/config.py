@@ -352,6 +352,7 @@ def _typed(holder: Any, values: dict[str, Any]) -> dict[str, Any]:
     """`values` for the fields of the dataclass `holder`, an int given for a float field as that float: `x=1` and
     `x=1.0` are one setting (one config, one cell), not two."""
     hints = get_type_hints(type(holder))
+
     def typed(name: str, value: Any) -> Any:
         hint = hints.get(name)
         is_float = hint is float or float in get_args(hint)
