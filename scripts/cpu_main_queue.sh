@@ -119,8 +119,20 @@ plans=$(python - "$out_dir" "$data_root" << 'EOF'
 import sys
 from pathlib import Path
 from bati.experiments.specs import get_spec, plan_experiment
+from bati.methods import METHODS, training_of
 out_dir, data_root = Path(sys.argv[1]), Path(sys.argv[2])
 runs = {p.parent.resolve() for p in out_dir.glob("*/*/*-seed*/checkpoint.msgpack") if not (p.parent / "eval.json").exists()}
+
+
+def with_companions(run: Path, method: str, seed: int) -> str:
+    """`method` and the methods evaluated alongside its cut run so far (their sibling directories hold evaluations,
+    no checkpoint, no eval.json): resumed with it, they go on alongside instead of training on their own later."""
+    companions = [m for m in METHODS if m != method and training_of(m) == training_of(method)
+                  and (run.parent / f"{m}-seed{seed}" / "eval.jsonl").exists()
+                  and not any((run.parent / f"{m}-seed{seed}" / f).exists() for f in ("eval.json", "checkpoint.msgpack"))]
+    return "+".join([method, *companions])
+
+
 for name in ("main", "noise", "context-length", "ood-tasks"):
     done = {}
     for cell in plan_experiment(get_spec(name), "cpu", out_dir, seeds=(0, 1, 2, 3, 4), data_root=data_root).cells:
@@ -129,13 +141,13 @@ for name in ("main", "noise", "context-length", "ood-tasks"):
         done[key] = done.get(key, True) and (c.out_dir / "eval.json").exists()
         if c.out_dir.resolve() in runs:
             runs.discard(c.out_dir.resolve())
-            print(f"cut:{name}:{c.family}:{c.method}:{c.seed}")
+            print(f"cut:{name}:{c.family}:{with_companions(c.out_dir.resolve(), c.method, c.seed)}:{c.seed}")
     print(*(f"finished:{key}" for key, value in done.items() if value), sep="\n")
 EOF
 )
 finished_cells=$(sed -n 's/^finished://p' <<< "$plans" | tr '\n' ' ')
 interrupted=$(sed -n 's/^cut://p' <<< "$plans" | sort -u)
-for job in $interrupted; do  # the cut seed only: the others come in their phase (with their methods alongside)
+for job in $interrupted; do  # the cut seed only (with the methods evaluated alongside it so far); the other seeds in their phase
   IFS=: read -r experiment family method seed <<< "$job"
   seeds=$seed job "$experiment" "$family" "$method" --out-dir "$out_dir"
 done

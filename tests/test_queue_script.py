@@ -140,6 +140,23 @@ def test_phase_0_resumes_the_cut_seed_only(tmp_path):
     assert ("ood-tasks", "AntDir", "bati+bati-r", "0") in jobs and ("ood-tasks", "AntDir", "bati+bati-r", "2") in jobs
 
 
+def test_a_cut_run_resumes_with_the_methods_evaluated_alongside_it(tmp_path):
+    # WalkerParam's BATI seed 1 was cut with BATI-R and BATI-auto alongside (their evaluations so far, no checkpoint
+    # of their own): resumed with them, not alone (then each of the two would train on its own in phase 1b)
+    run = planned_run(tmp_path, "main", "WalkerParam", "bati")
+    cut = run.parent / "bati-seed1"
+    cut.mkdir(parents=True)
+    (cut / "checkpoint.msgpack").write_bytes(b"")
+    for method in ("bati-r", "bati-auto"):
+        (run.parent / f"{method}-seed1").mkdir()
+        (run.parent / f"{method}-seed1" / "eval.jsonl").write_text('{"step": 0}\n')
+    jobs, _ = run_queue(tmp_path, SEEDS="0 1 2")
+    assert jobs[0] == ("main", "WalkerParam", "bati+bati-r+bati-auto", "1")
+    (run.parent / "bati-auto-seed1" / "eval.json").write_text("{}")  # finished on its own: not a companion
+    jobs, _ = run_queue(tmp_path, SEEDS="0 1 2")
+    assert jobs[0] == ("main", "WalkerParam", "bati+bati-r", "1")
+
+
 def test_wait_pid_of_a_finished_process_does_not_wait(tmp_path):
     done = subprocess.Popen(["true"])
     done.wait()
