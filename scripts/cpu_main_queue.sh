@@ -147,7 +147,7 @@ EOF
 )
 finished_cells=$(sed -n 's/^finished://p' <<< "$plans" | tr '\n' ' ')
 interrupted=$(sed -n 's/^cut://p' <<< "$plans" | sort -u)
-for job in $interrupted; do  # the cut seed only (with the methods evaluated alongside it so far); the other seeds in their phase
+for job in $interrupted; do  # the cut seed only (with the methods evaluated alongside it so far); other seeds later
   IFS=: read -r experiment family method seed <<< "$job"
   seeds=$seed job "$experiment" "$family" "$method" --out-dir "$out_dir"
 done
