@@ -19,9 +19,9 @@ CPU = next(s for s in SOURCES if s.scale == "cpu")
 
 @pytest.fixture(autouse=True)
 def fewer_replicates(monkeypatch):
-    """200 bootstrap replicates instead of the page's 2,000: the verdicts of these clear-cut cases do not
+    """50 bootstrap replicates instead of the page's 2,000: the verdicts of these clear-cut cases do not
     depend on it, and the suite stays fast."""
-    monkeypatch.setattr(claims_module, "REPS", 200)
+    monkeypatch.setattr(claims_module, "REPS", 50)
 QUICK = SOURCES[0]
 
 

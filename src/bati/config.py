@@ -10,6 +10,7 @@ run directories) unchanged for configs that older versions could express.
 from __future__ import annotations
 
 import json
+from functools import cache
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
 from typing import Any, Literal, get_args, get_type_hints
@@ -179,11 +180,11 @@ class TrainConfig:
 
     def record(self) -> dict:
         """The config as JSON data (config.json): only the run's own method's hyperparameters."""
-        record = json.loads(json.dumps(asdict(self), default=str))
         own = method_config_key(self.method)
-        for name in method_sections():
-            if name != own:
-                record.pop(name)
+        others = set(method_sections()) - {own}
+        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in others}
+        values = {name: asdict(value) if is_dataclass(value) else value for name, value in values.items()}
+        record = json.loads(json.dumps(values, default=str))
         if self.family not in (None, OWN_FAMILY):  # the env's version is part of what the run trained on
             record["family_version"] = family_of(self.family).record.version
         return record
@@ -323,12 +324,13 @@ NOT_SETTABLE = ("iql.discrete",)
 """Derived from the family (KuhnPoker's actions are discrete), never set by hand."""
 
 
-def settable_names() -> set[str]:
+@cache
+def settable_names() -> frozenset[str]:
     """Names `apply_settings` accepts: TrainConfig's plain fields and `section.field` of nested ones."""
     sections = nested_sections()
     names = {f.name for f in fields(TrainConfig) if f.name not in sections}
     names |= {f"{name}.{f.name}" for name, cls in sections.items() for f in fields(cls)}
-    return names - set(NOT_SETTABLE)
+    return frozenset(names - set(NOT_SETTABLE))
 
 
 def apply_settings(config: TrainConfig, settings: dict[str, Any]) -> TrainConfig:
@@ -351,13 +353,19 @@ def apply_settings(config: TrainConfig, settings: dict[str, Any]) -> TrainConfig
 def _typed(holder: Any, values: dict[str, Any]) -> dict[str, Any]:
     """`values` for the fields of the dataclass `holder`, an int given for a float field as that float: `x=1` and
     `x=1.0` are one setting (one config, one cell), not two."""
-    hints = get_type_hints(type(holder))
+    hints = _field_types(type(holder))
 
     def typed(name: str, value: Any) -> Any:
         hint = hints.get(name)
         is_float = hint is float or float in get_args(hint)
         return float(value) if is_float and isinstance(value, int) and not isinstance(value, bool) else value
     return {name: typed(name, value) for name, value in values.items()}
+
+
+@cache
+def _field_types(cls: type) -> dict[str, Any]:
+    """The dataclass `cls`'s field types, resolved once (a plan applies settings to hundreds of cells)."""
+    return get_type_hints(cls)
 
 
 def family_of(name: str, context_length: int | None = None):

@@ -26,6 +26,7 @@ import time
 import traceback
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Literal
 
@@ -87,11 +88,11 @@ class Grid:
 class Cell:
     config: TrainConfig  # resolved, out_dir set
 
-    @property
+    @cached_property  # (a digest costs a config's record; plans and reports ask for it many times)
     def id(self) -> str:
         return config_digest(self.config, exclude=NOT_IDENTITY)
 
-    @property
+    @cached_property
     def job_key(self) -> str:
         return config_digest(self.config, exclude=NOT_IDENTITY + ("seed",))
 
