@@ -10,8 +10,8 @@ run directories) unchanged for configs that older versions could express.
 from __future__ import annotations
 
 import json
-from functools import cache
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from functools import cache
 from pathlib import Path
 from typing import Any, Literal, get_args, get_type_hints
 
