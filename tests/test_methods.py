@@ -98,9 +98,9 @@ def _fit(method, steps=300, seed=0):
 
     @jax.jit
     def step(params, opt_state, batch, key):
-        (loss, _), grads = jax.value_and_grad(method.loss, has_aux=True)(params, batch, key)
+        (loss, (_, metrics)), grads = jax.value_and_grad(method.loss, has_aux=True)(params, batch, key)
         updates, opt_state = optimizer.update(grads, opt_state)
-        return optax.apply_updates(params, updates), opt_state, loss
+        return optax.apply_updates(params, updates), opt_state, (loss, metrics)
 
     losses = []
     for i in range(steps):
@@ -110,8 +110,8 @@ def _fit(method, steps=300, seed=0):
         batch["context"] = toy_transitions(np.arange(4), n=32, seed=10_000 + i)
         batch["positive_context"] = toy_transitions(np.arange(4), n=32, seed=20_000 + i)
         batch["expert_actions"] = toy_expert_actions(batch["observations"], np.arange(4))
-        params, opt_state, loss = step(params, opt_state, batch, jax.random.PRNGKey(i))
-        losses.append(float(loss))
+        params, opt_state, (loss, metrics) = step(params, opt_state, batch, jax.random.PRNGKey(i))
+        losses.append({"loss": float(loss), **{k: float(v) for k, v in metrics.items()}})
     return params, losses
 
 
@@ -119,8 +119,13 @@ def _fit(method, steps=300, seed=0):
 def test_loss_goes_down_and_inference_finds_the_task(name):
     method = make_method(name, SPEC)
     params, losses = _fit(method)
-    if name != "er-trl":  # ER-TRL's loss holds an adversarial game and an entropy it raises: no descent to check
-        assert np.mean(losses[-20:]) < np.mean(losses[:20]) - 0.5
+    # What must descend: the whole loss, except where a term is not meant to. CSRO's holds q's NLL of latents
+    # that spread as the tasks separate (it rises: 3.2 -> 3-4.6, and the last bits of rounding decide where),
+    # so its metric loss is checked; ER-TRL's holds an adversarial game and an entropy it raises: none.
+    descending = {"csro": "metric_loss", "er-trl": None}.get(name, "loss")
+    if descending:
+        curve = [step[descending] for step in losses]
+        assert np.mean(curve[-20:]) < np.mean(curve[:20]) - 0.5
     # Reference latents from each task's own contexts; inferred latents of fresh contexts must be nearest
     # to their own task's reference.
     reference = method.infer(params, toy_transitions(np.arange(4), n=100, seed=5), jax.random.PRNGKey(1))
@@ -346,7 +351,8 @@ def test_dpt_transformer_is_causal():
 def test_dpt_learns_the_experts_action_from_the_context():
     method = make_method("dpt", SPEC)
     params, losses = _fit(method, steps=300)
-    assert np.mean(losses[-20:]) < np.mean(losses[:20]) - 0.5
+    curve = [step["loss"] for step in losses]
+    assert np.mean(curve[-20:]) < np.mean(curve[:20]) - 0.5
     context = toy_transitions(np.arange(4), n=32, seed=7)
     z = method.infer(params, context, jax.random.PRNGKey(0))
     actions = np.asarray(method.act(params, jnp.zeros((4, 2)), z)[:, 0])
