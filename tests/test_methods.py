@@ -102,7 +102,7 @@ def _fit(method, steps=300, seed=0):
         updates, opt_state = optimizer.update(grads, opt_state)
         return optax.apply_updates(params, updates), opt_state, (loss, metrics)
 
-    losses = []
+    curves: dict[str, list[float]] = {}  # "loss" and each of the method's logged terms, one value a step
     for i in range(steps):
         batch = toy_transitions(np.arange(4), n=64, seed=100 + i)
         batch["task_ids"] = jnp.arange(4)
@@ -111,20 +111,21 @@ def _fit(method, steps=300, seed=0):
         batch["positive_context"] = toy_transitions(np.arange(4), n=32, seed=20_000 + i)
         batch["expert_actions"] = toy_expert_actions(batch["observations"], np.arange(4))
         params, opt_state, (loss, metrics) = step(params, opt_state, batch, jax.random.PRNGKey(i))
-        losses.append({"loss": float(loss), **{k: float(v) for k, v in metrics.items()}})
-    return params, losses
+        for name, value in {"loss": loss, **metrics}.items():
+            curves.setdefault(name, []).append(float(value))
+    return params, curves
 
 
 @pytest.mark.parametrize("name", ["bati", "recon", "unicorn", "focal", "csro", "er-trl"])
 def test_loss_goes_down_and_inference_finds_the_task(name):
     method = make_method(name, SPEC)
-    params, losses = _fit(method)
+    params, curves = _fit(method)
     # What must descend: the whole loss, except where a term is not meant to. CSRO's holds q's NLL of latents
     # that spread as the tasks separate (it rises: 3.2 -> 3-4.6, and the last bits of rounding decide where),
     # so its metric loss is checked; ER-TRL's holds an adversarial game and an entropy it raises: none.
     descending = {"csro": "metric_loss", "er-trl": None}.get(name, "loss")
     if descending:
-        curve = [step[descending] for step in losses]
+        curve = curves[descending]
         assert np.mean(curve[-20:]) < np.mean(curve[:20]) - 0.5
     # Reference latents from each task's own contexts; inferred latents of fresh contexts must be nearest
     # to their own task's reference.
@@ -350,8 +351,8 @@ def test_dpt_transformer_is_causal():
 
 def test_dpt_learns_the_experts_action_from_the_context():
     method = make_method("dpt", SPEC)
-    params, losses = _fit(method, steps=300)
-    curve = [step["loss"] for step in losses]
+    params, curves = _fit(method, steps=300)
+    curve = curves["loss"]
     assert np.mean(curve[-20:]) < np.mean(curve[:20]) - 0.5
     context = toy_transitions(np.arange(4), n=32, seed=7)
     z = method.infer(params, context, jax.random.PRNGKey(0))
