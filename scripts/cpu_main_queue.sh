@@ -18,12 +18,16 @@
 # BATI and FOCAL (claim C4, untested at every scale), then phase 1 in two passes over the families: the Oracle (the
 # normaliser), BATI and FOCAL first (claims C1-C2 on five families; BATI-R and BATI-auto are evaluated alongside
 # BATI's run, which is their training too: `bati+bati-r+bati-auto`), with the context-length and ood-tasks
-# ablations' BATI and FOCAL (claims C5, C6) before the last two families, ER-TRL's noise cells, then the other methods
-# that the claims compare (BATI's reward-only variant, hosting BATI-auto where BATI's run is finished, the paper's
-# baselines, the no-context floor) and the two
-# ablations' other baselines, then the noise ablation's other methods, the FOCAL distance ablation, then
+# ablations' BATI and FOCAL (claims C5, C6) before the last two families, then the other methods that the claims
+# compare (Recon first, the paper's other baselines, BATI's reward-only variant hosting BATI-auto where BATI's run is
+# finished, the no-context floor) and the two
+# ablations' other baselines, then the noise ablation's other methods and ER-TRL's noise cells (since 2026-11-27:
+# they were before phase 1b, but decide no paper claim), the FOCAL distance ablation, then
 # phase 2: the others (ER-TRL, BATI-auto, DPT) on every family. WAIT_PID: a running job's process to wait for first
 # (a queue restarted with a new order beside a job of the old one).
+# Overrides (space-separated lists; ' ' for none): FAMILIES (phases 1-2; e.g. only the families whose paper data
+# the machine holds, so that no session goes to a collection), PHASE1A, PHASE1B, PHASE2 (methods per family),
+# NOISE_FIRST, NOISE_REST, NOISE_NEXT (the noise ablation's methods), SEEDS, SKIP_ABLATIONS=1.
 # After a job: `bati experiment main --scale cpu --report-only --out-dir results/cpu/experiments --data-root DATA`
 # and `bati claims` regenerate the report and docs/claims.md; commit the cells (checkpoints are git-ignored).
 # STOP_AT (epoch seconds, e.g. STOP_AT=$(date -d '+170 min' +%s)): the session's end. A seed or a collection whose
@@ -110,7 +114,7 @@ finished() {  # $1 experiment, $2 family, $3 seed, the rest: methods; true when 
 }
 families=${FAMILIES:-"AntDir HalfCheetahVel HalfCheetahDir HopperParam WalkerParam"}
 phase1a=${PHASE1A:-"oracle bati+bati-r+bati-auto focal"}
-phase1b=${PHASE1B:-"bati-r+bati-auto csro unicorn recon no-context"}  # bati-r hosts bati-auto where bati finished
+phase1b=${PHASE1B:-"recon unicorn csro bati-r+bati-auto no-context"}  # bati-r hosts bati-auto where bati finished
 phase2=${PHASE2:-"er-trl bati-auto dpt"}
 # The queue's experiments as planned at the cpu scale: which (experiment, family, method, seed) have all their cells
 # finished (eval.json; a job of those is skipped without starting Python), and phase 0: jobs a stop interrupted (a cell
@@ -166,7 +170,8 @@ main_phase() {  # $1: the methods, each on every family (or on the families $2)
 # Claim C4 (noise hurts the baselines, not BATI) is untested at every scale: the AntDir noise ablation's claim pair
 # (BATI and FOCAL, the baseline whose fall on p_test is decided on AntDir) comes first. Then phase 1 in two passes:
 # the claim pair with the Oracle (the normaliser) on every family, so that C1-C2 rest on five families as early as
-# possible, then the other paper methods; ER-TRL's part of the noise ablation (issue 28) between them.
+# possible, then the other paper methods (Recon first: claim C3), then the ablations' and the noise ablation's other
+# baselines; ER-TRL's part of the noise ablation (issue 28, beyond the paper: it decides no paper claim) after them.
 noise ${NOISE_FIRST:-bati focal}
 main_phase "$phase1a" "AntDir HalfCheetahVel HalfCheetahDir"  # the families whose data is at hand
 # Claims C5 (Table 1: BATI gains from longer contexts, the baselines do not) and C6 (Table 2: only BATI positive on
@@ -180,10 +185,10 @@ ablations() {  # $@: the methods of each of the two ablations
 }
 ablations bati+bati-r focal
 main_phase "$phase1a"
-noise ${NOISE_NEXT:-er-trl}
 main_phase "$phase1b"
 ablations csro unicorn recon bati-r  # bati-r: the seeds whose BATI run finished without it alongside
 noise ${NOISE_REST:-bati-r csro unicorn recon}
+noise ${NOISE_NEXT:-er-trl}
 # FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the
 # baselines' fall on p_test? Its own output directory, so the main table's report is not touched.
 if [ -z "${SKIP_ABLATIONS:-}" ]; then

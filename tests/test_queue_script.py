@@ -69,8 +69,7 @@ def test_order_claims_first(tmp_path):
                         ("main", "AntDir", "oracle", "0"), ("main", "AntDir", "bati+bati-r+bati-auto", "0"),
                         ("main", "AntDir", "focal", "0")]
     # phase 1's first pass (the Oracle, BATI, FOCAL) on the first three families, then the claim pairs of the
-    # context-length and ood-tasks ablations (C5, C6), then the first pass on the last two families, before ER-TRL's
-    # noise cells and the rest
+    # context-length and ood-tasks ablations (C5, C6), then the first pass on the last two families, before the rest
     first_pass = [(f, m) for _, f, m, _ in jobs[4:13]]
     assert first_pass == [(f, m) for f in ("AntDir", "HalfCheetahVel", "HalfCheetahDir")
                           for m in ("oracle", "bati+bati-r+bati-auto", "focal")]
@@ -80,7 +79,11 @@ def test_order_claims_first(tmp_path):
     # (the first pass then visits every family again: finished cells are skipped in seconds, skipped ones run)
     assert [(f, m) for _, f, m, _ in jobs[17:32]] == [(f, m) for f in FAMILIES
                                                        for m in ("oracle", "bati+bati-r+bati-auto", "focal")]
-    assert jobs[32] == ("noise", "AntDir", "er-trl", "0") and jobs[33] == ("main", "AntDir", "bati-r+bati-auto", "0")
+    # then phase 1b, Recon first (claim C3); ER-TRL's noise cells (beyond the paper) after the noise ablation's others
+    assert jobs[32] == ("main", "AntDir", "recon", "0")
+    assert [m for _, f, m, _ in jobs[32:37]] == ["recon", "unicorn", "csro", "bati-r+bati-auto", "no-context"]
+    noise = [m for e, _, m, _ in jobs if e == "noise"]
+    assert noise == ["bati", "focal", "bati-r", "csro", "unicorn", "recon", "er-trl"]
     ablations = [(e, m) for e, _, m, _ in jobs if e in ("context-length", "ood-tasks")]
     assert ablations[4:] == [(e, m) for e in ("context-length", "ood-tasks") for m in ("csro", "unicorn", "recon",
                                                                                        "bati-r")]
