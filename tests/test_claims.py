@@ -85,7 +85,22 @@ def test_overlapping_intervals_do_not_decide(tmp_path):
     write_cells(tmp_path, CPU, "main", {("bati", f): (same, same) for f in FAMILIES}
                 | {("recon", f): (same, same) for f in FAMILIES})
     c3 = next(f for f in decide(tmp_path) if f.claim.name == "C3")
-    assert c3.verdict == "not reproduced" and "P(BATI > Recon) 0.50" in c3.lines[0]
+    assert c3.verdict == "not reproduced" and "P(BATI > recon) 0.50" in c3.lines[0]
+    assert c3.lines[-1].startswith("pooled over AntDir, HalfCheetahVel") and "P(BATI > Recon) 0.50" in c3.lines[-1]
+
+
+def test_recon_is_judged_family_by_family_like_the_other_baselines(tmp_path):
+    """BATI far above Recon on one family and level on another: C3 holds on one family ('partly', as C1 would say of
+    a baseline), although the pooled probability, shown beside, averages a decided family with a tie."""
+    level = (0.5, 0.6, 0.7)
+    write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("recon", "AntDir"): (LOW, LOW),
+                                        ("bati", "WalkerParam"): (level, level), ("recon", "WalkerParam"): (level, level)})
+    c3 = next(f for f in decide(tmp_path) if f.claim.name == "C3")
+    assert c3.verdict == "partly"
+    assert c3.lines[0] == "AntDir: BATI 0.85 (3 seed(s)); P(BATI > recon) 1.00 [1.00, 1.00]"
+    assert c3.lines[1].startswith("WalkerParam: BATI 0.60 (3 seed(s)); P(BATI > recon) 0.50")
+    assert c3.lines[2].startswith("pooled over AntDir, WalkerParam: BATI 0.72, Recon 0.42; "
+                                 "stratified P(BATI > Recon) 0.75")  # (1 + 1/2) / 2
 
 
 def test_cli_writes_the_page(tmp_path, capsys):
