@@ -30,6 +30,9 @@
 # NOISE_FIRST, NOISE_REST, NOISE_NEXT (the noise ablation's methods), SEEDS, SKIP_ABLATIONS=1.
 # After a job: `bati experiment main --scale cpu --report-only --out-dir results/cpu/experiments --data-root DATA`
 # and `bati claims` regenerate the report and docs/claims.md; commit the cells (checkpoints are git-ignored).
+# A one-seed job's own report covers its seed only: before committing, revert the report and sweep files alone
+# (`git checkout -- results/cpu/experiments/main results/cpu/experiments/*.sweep.json`), never a run directory:
+# a committed partial log of a cut run would overwrite the finished run's own (it happened on 2026-11-27).
 # STOP_AT (epoch seconds, e.g. STOP_AT=$(date -d '+170 min' +%s)): the session's end. A seed or a collection whose
 # estimate (minutes below: measured on this project's 2-core machines with other work beside, docs/performance.md)
 # would not finish by then is skipped, and the queue goes on to the next that fits: a job cut by the end of a
