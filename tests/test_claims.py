@@ -140,6 +140,18 @@ def test_every_tested_scale_stands_beside_the_largest(tmp_path):
                                                        "paper: not reproduced (AntDir; 1 of 5 families)")
 
 
+def test_a_family_with_fewer_seeds_is_named_not_pooled(tmp_path):
+    """FOCAL at 3 seeds on AntDir and 2 on WalkerParam: C2 pools AntDir alone (pooling both would cut AntDir to
+    2 seeds and decide nothing) and names WalkerParam."""
+    write_cells(tmp_path, CPU, "main", {("bati", f): (HIGH, HIGH) for f in ("AntDir", "WalkerParam")}
+                | {("focal", "AntDir"): (HIGH, LOW)})
+    write_cells(tmp_path, CPU, "main", {("focal", "WalkerParam"): (HIGH, LOW)}, seeds=(0, 1))
+    c2 = next(f for f in decide(tmp_path) if f.claim.name == "C2" and f.source is CPU)
+    assert c2.verdict == "partly"
+    assert c2.lines[0].startswith("focal (1 families): p_test - p_train -0.60 vs BATI +0.00 (not pooled, fewer than 3 "
+                                  "seeds: WalkerParam); P(BATI falls less) 1.00 [1.00, 1.00]")
+
+
 def test_a_claim_about_every_family_holds_at_most_partly_on_some(tmp_path):
     """C2 decided on AntDir alone is 'partly': the claim is about all five families."""
     write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})

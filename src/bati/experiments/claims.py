@@ -187,10 +187,12 @@ def _partial(decisions: list[int]) -> str:
 
 
 def fall_on_p_test(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
-    """C2: a baseline's p_test - p_train (normalised) against BATI's, stratified over the families both ran on."""
+    """C2: a baseline's p_test - p_train (normalised) against BATI's, stratified over the families where both have
+    MIN_SEEDS seeds (a family with fewer is named, not pooled: it would cut every family to its seeds)."""
     lines, decisions, covered = [], [], set()
     for baseline in BASELINES:
-        both = _both(records, ("bati", baseline), families)
+        ran = _both(records, ("bati", baseline), families)
+        both = _both(records, ("bati", baseline), families, MIN_SEEDS) or ran
         if not both:
             continue
         bati, other = _stratified(records, "bati", both, "change"), _stratified(records, baseline, both, "change")
@@ -198,6 +200,8 @@ def fall_on_p_test(records: list[Record], families: tuple[str, ...]) -> tuple[li
         if not _seeds_ok(bati, other):
             lines.append(head + f" ({min(len(bati), len(other))} seed(s) per family)")
             continue
+        if len(both) < len(ran):
+            head += f" (not pooled, fewer than {MIN_SEEDS} seeds: {', '.join(f for f in ran if f not in both)})"
         p = _p(bati, other)
         decisions.append(_decides(p))
         covered.update(both)
@@ -208,18 +212,19 @@ def fall_on_p_test(records: list[Record], families: tuple[str, ...]) -> tuple[li
     return lines, _verdict(decisions, len(decisions))
 
 
-def _both(records: list[Record], methods: tuple[str, ...], families: tuple[str, ...]) -> tuple[str, ...]:
-    """The families on which every one of `methods` has a run."""
-    return tuple(f for f in families if all(len(_scores(records, m, f)) for m in methods))
+def _both(records: list[Record], methods: tuple[str, ...], families: tuple[str, ...], seeds: int = 1) -> tuple[str, ...]:
+    """The families on which every one of `methods` has runs of at least `seeds` seeds."""
+    return tuple(f for f in families if all(len(_scores(records, m, f)) >= seeds for m in methods))
 
 
 def recon_below(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
     """C3: P(BATI > Recon) on p_test family by family, as C1 and C8 decide theirs (Table 4 ranks per family), and
-    the pooled figure over the families both ran on (stratified) as one more line; the per-family intervals decide."""
+    the pooled figure over the families where both have MIN_SEEDS seeds (stratified) as one more line; the
+    per-family intervals decide."""
     lines, verdict = best_on_p_test(records, families, ("recon",))
-    both = _both(records, ("bati", "recon"), families)
-    bati, recon = _stratified(records, "bati", both), _stratified(records, "recon", both)
-    if len(both) > 1 and _seeds_ok(bati, recon):
+    both = _both(records, ("bati", "recon"), families, MIN_SEEDS)
+    if len(both) > 1:
+        bati, recon = _stratified(records, "bati", both), _stratified(records, "recon", both)
         lines.append(f"pooled over {', '.join(both)}: BATI {bati.mean():.2f}, Recon {recon.mean():.2f}; "
                      f"stratified P(BATI > Recon) {_fmt_p(_p(bati, recon))}")
     return lines, verdict
