@@ -148,7 +148,7 @@ def test_a_family_with_fewer_seeds_is_named_not_pooled(tmp_path):
     write_cells(tmp_path, CPU, "main", {("focal", "WalkerParam"): (HIGH, LOW)}, seeds=(0, 1))
     c2 = next(f for f in decide(tmp_path) if f.claim.name == "C2" and f.source is CPU)
     assert c2.verdict == "partly"
-    assert c2.lines[0].startswith("focal (1 family): p_test - p_train -0.60 vs BATI +0.00 (not pooled, fewer than 3 "
+    assert c2.lines[0].startswith("focal (1 family: AntDir): p_test - p_train -0.60 vs BATI +0.00 (not pooled, fewer than 3 "
                                   "seeds: WalkerParam); P(BATI falls less) 1.00 [1.00, 1.00]")
 
 

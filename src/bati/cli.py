@@ -66,16 +66,20 @@ class Envs:
         if self.noise is not None:
             for family in families:
                 family.validate_noise(self.noise)
+        wide = console.width >= 120  # else each task space goes below the table, not into a column of a word
         table = Table(title="bati task families")
-        table.add_column("family", no_wrap=True)
-        table.add_column("gymnasium id", no_wrap=True)
-        for column in ("tasks differ in", "task space", "default eps"):
-            table.add_column(column)
+        for column in ("family", "gymnasium id", "tasks differ in", "default eps"):
+            table.add_column(column, no_wrap=True)
+        if wide:
+            table.add_column("task space", ratio=1)
         for f in families:
-            table.add_row(f.name, f.env_id, f.kind, escape(f.task_space), f"{f.default_noise:g}")
+            table.add_row(f.name, f.env_id, f.kind, f"{f.default_noise:g}", *([escape(f.task_space)] if wide else []))
         for name, _ in unavailable:
-            table.add_row(name, f"bati/{name}-v0", "-", "not installed (below)", "-")
+            table.add_row(name, f"bati/{name}-v0", "-", "-", *(["not installed (below)"] if wide else []))
         console.print(table)
+        if not wide:
+            for f in families:
+                console.print(f"[bold]{f.name}[/]: {escape(f.task_space)}", soft_wrap=True)
         for _, why in unavailable:
             console.print(escape(why), soft_wrap=True)
         if self.task is not None:
@@ -385,11 +389,17 @@ class Experiment(ExperimentJob):
             table.add_column("paper", no_wrap=True)
             for column in ("quick", "cpu", "paper", "probes"):
                 table.add_column(column, justify="right", no_wrap=True)
-            table.add_column("what", ratio=1)
-            for row in experiment_list():
+            rows = experiment_list()
+            wide = console.width >= 120  # else the titles go below the table: a column of 8 characters reads badly
+            if wide:
+                table.add_column("what", ratio=1)
+            for row in rows:
                 table.add_row(row["name"], row["paper"], *(str(row["cells"][k]) for k in ("quick", "cpu", "paper")),
-                              str(row["probes"]), escape(row["title"]))
+                              str(row["probes"]), *([escape(row["title"])] if wide else []))
             console.print(table)
+            if not wide:
+                for row in rows:
+                    console.print(f"[bold]{row['name']}[/]: {escape(row['title'])}", soft_wrap=True)
             return
         outcome = run_experiment_job(self, show_progress=console.is_terminal,
                                      on_probe=lambda label: console.print(f"probe {label}") if console.is_terminal

@@ -197,6 +197,8 @@ def fall_on_p_test(records: list[Record], families: tuple[str, ...]) -> tuple[li
             continue
         bati, other = _stratified(records, "bati", both, "change"), _stratified(records, baseline, both, "change")
         counted = f"{len(both)} {'family' if len(both) == 1 else 'families'}"
+        if len(both) < len(families):
+            counted += ": " + ", ".join(both)
         head = f"{baseline} ({counted}): p_test - p_train {other.mean():+.2f} vs BATI {bati.mean():+.2f}"
         if not _seeds_ok(bati, other):
             lines.append(head + f" ({min(len(bati), len(other))} seed(s) per family)")
