@@ -113,6 +113,13 @@ def test_cli_writes_the_page(tmp_path, capsys):
     assert "C3 reproduced (at cpu)" in capsys.readouterr().out
 
 
+def test_a_root_without_results_is_one_line_and_writes_nothing(tmp_path, capsys):
+    assert main(["claims", "--root", str(tmp_path / "typo")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: no results/ directory under") and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "typo").exists()
+
+
 @pytest.mark.parametrize("claim", [c.name for c in CLAIMS])
 def test_every_claim_is_not_tested_without_results(tmp_path, claim):
     assert verdicts(tmp_path)[claim] == ("not tested", "-")

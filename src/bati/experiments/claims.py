@@ -521,8 +521,12 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
 def write_claims(root: Path = Path("."), out: Path | None = None) -> tuple[Path, list[tuple[Claim, str, str]]]:
     """`bati claims`: decide every claim from the result files under `root`, write the page (default
     ROOT/docs/claims.md, atomically) and return its path and (claim, verdict, scale) per claim."""
+    from bati.errors import PathError
     from bati.io import atomic_write_text
 
+    if not (Path(root) / "results").is_dir():  # a mistyped --root would give a page of "not tested" claims
+        raise PathError(f"no results/ directory under {root}: --root is the project directory whose results/ "
+                        "holds the experiments")
     findings = decide(root)
     out = out or Path(root) / "docs" / "claims.md"
     command = "bati claims" + (f" --root {root}" if Path(root) != Path(".") else "")
