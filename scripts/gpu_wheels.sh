@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Wheels of what the lent GPU machine's image lacks (issue 29; its Python is 3.12, no package index there),
-# downloaded here into .whl/ (git-ignored through .git/info/exclude), ~39 MB. Carry `.whl` in each device call;
+# downloaded here into .whl/ (git-ignored through .git/info/exclude), ~43 MB (16 of it OpenSpiel, for KuhnPoker). Carry `.whl` in each device call;
 # scripts/gpu_paper_scale.sh installs them there. Versions: the ones this project's CI installs (pip show).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -12,7 +12,10 @@ python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 -
   --platform manylinux2014_x86_64 --platform manylinux1_x86_64 -d .whl \
   mujoco==4.0.0 mujoco-core==4.0.0 glfw==2.11.0 pyopengl==3.1.10 \
   gymnasium==1.4.0 farama-notifications==0.0.6 minari==0.5.4 tyro==1.0.17 docstring-parser==0.18.0 typeguard==4.6.1 \
-  arch==7.2.0 pandas==2.3.3 pytz==2026.6 tzdata==2026.6
+  arch==7.2.0 pandas==2.3.3 pytz==2026.6 tzdata==2026.6 \
+  open-spiel==2.0.2 ml-collections==1.1.0
+# open-spiel (16 MB) and ml-collections: KuhnPoker (FILL=kuhn, the kuhn experiment); without them on 2026-11-27
+# every Kuhn job failed at once ("KuhnPoker needs OpenSpiel").
 # Not mujoco-studio (its viewer and renderer, 13 MB) nor websockets: rollouts need neither, and the working tree
 # that travels must stay under 64 MiB (35 MB of it is tracked files).
 # rliable 1.2.0 is an sdist on PyPI: build its (pure-Python) wheel here. The experiment checks for rliable before any
