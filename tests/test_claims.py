@@ -133,6 +133,22 @@ def test_er_trl_is_judged_apart_from_the_papers_baselines(tmp_path):
     assert found["C1"] == ("not tested", "-")  # C1 is about the paper's baselines, none of which ran
 
 
+def test_bati_r_is_judged_as_its_own_claim_where_full_bati_falls(tmp_path):
+    """C9 asks of BATI-R what C1 asks of BATI: full BATI below the baselines on p_test does not touch it."""
+    scores = {("bati", f): (HIGH, LOW) for f in FAMILIES} | {("bati-r", f): (HIGH, HIGH) for f in FAMILIES}
+    scores |= {("focal", f): (HIGH, (0.5, 0.55, 0.6)) for f in FAMILIES}
+    write_cells(tmp_path, CPU, "main", scores)
+    found = verdicts(tmp_path)
+    assert found["C9"] == ("reproduced", "cpu") and found["C1"] == ("not reproduced", "cpu")
+    c9 = next(f for f in decide(tmp_path) if f.claim.name == "C9")
+    assert c9.families == list(FAMILIES) and "P(BATI-R > focal) 1.00" in c9.lines[0]
+
+
+def test_bati_r_alone_tests_nothing(tmp_path):
+    write_cells(tmp_path, CPU, "main", {("bati-r", f): (HIGH, HIGH) for f in FAMILIES})
+    assert verdicts(tmp_path)["C9"] == ("not tested", "-")
+
+
 def test_every_tested_scale_stands_beside_the_largest(tmp_path):
     """A thin slice at a larger scale decides the headline verdict, and the smaller scale's verdict stays on
     the page beside it."""
