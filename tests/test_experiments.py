@@ -277,6 +277,40 @@ def test_vs_figure_puts_each_column_at_its_number_and_orders_columns_numerically
     assert (position("10/30"), position("200"), position("AntDir eps=0.5"), position("final")) == (10, 200, 0.5, None)
 
 
+def test_a_bati_runs_likelihood_split_is_saved_before_the_next_job_starts(tmp_path, monkeypatch):
+    """The split needs the run's checkpoint, which a lent GPU machine keeps only until it goes back: it is written
+    as each job ends, not after the whole sweep (at the paper scale no BATI run had one: every session ended first).
+    No training here: the jobs write their eval.json, the split records its call."""
+    from bati.experiments import specs as specs_module
+    from bati.experiments import sweep as sweep_module
+
+    events = []
+    plan = plan_experiment(get_spec("main"), "quick", tmp_path, families=("AntDir",),
+                           methods=("bati", "bati-r", "focal"), seeds=(0,))
+    records = {c.config.out_dir: c.config.record() for c in plan.cells}
+
+    def fake_job(config, seeds, runs_dir, references=None, also=()):
+        events.append(f"train {config.method}")
+        for seed in seeds:
+            for method in (config.method,) + tuple(also):
+                run = runs_dir / f"{method}-seed{seed}"
+                run.mkdir(parents=True, exist_ok=True)
+                (run / "eval.json").write_text(json.dumps({"config": records[run]}))
+        return [{}]
+
+    monkeypatch.setattr(sweep_module, "run_job", fake_job)
+    monkeypatch.setattr(sweep_module, "prepare_data", lambda cells, progress: None)
+    monkeypatch.setattr(sweep_module, "check_experts", lambda cells: None)
+    monkeypatch.setattr(specs_module, "likelihood_split_due",  # due until saved, as the real one (a file)
+                        lambda run, step, length: f"split {Path(run).name}" not in events)
+    monkeypatch.setattr(specs_module, "save_likelihood_split",
+                        lambda run, length: events.append(f"split {Path(run).name}"))
+    result = run_experiment(plan, tmp_path, show_progress=False)
+    assert result.sweep.count("done") == 3 and not result.probe_errors
+    # bati-r trained with bati: bati's run holds the model, so one split, before FOCAL's job
+    assert events == ["train bati", "split bati-seed0", "train focal"]
+
+
 # --- tiny variants end to end (PointGoal stands in for the MuJoCo families) ---------------------
 TINY = ("steps=10", "eval_every=10", "log_every=10", "batch_size=8", "iql.hidden_dims=[32,32]", "task_batch=2",
         "episodes_per_task=2", "context_episodes=2")

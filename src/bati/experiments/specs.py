@@ -381,9 +381,29 @@ def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"),
             return run_experiment(plan, out_dir, data_root=data_root, workers=workers, backend=backend,
                                   address=address, show_progress=show_progress, on_probe=on_probe, locked=True)
     start = time.perf_counter()
-    result = sweep(plan.grids, out_dir, data_root=data_root, workers=workers, backend=backend, address=address,
-                   show_progress=show_progress, status_file=status_file(plan.spec), locked=True)
     done, errors = 0, {}
+
+    def split(cells) -> None:
+        """The likelihood split of the cells' BATI runs where the spec keeps it and it is due. The split is
+        the trained model's: bati-r and bati-auto share bati's training, so bati's run has it."""
+        nonlocal done
+        for cell in cells:
+            c = cell.config
+            if not (plan.spec.likelihood_split and has_task_table(c.method) and training_of(c.method) == c.method
+                    and likelihood_split_due(c.out_dir, c.steps, c.eval_context_length)):
+                continue
+            label = f"{cell.label} likelihood"
+            if on_probe is not None:
+                on_probe(label)
+            try:
+                save_likelihood_split(c.out_dir, c.eval_context_length)
+                done += 1
+            except Exception as err:  # reported like a failed probe
+                errors[label] = f"{type(err).__name__}: {err}"
+
+    # each job's split right after it (its checkpoint is at hand; a session cut later keeps it), the probes after all
+    result = sweep(plan.grids, out_dir, data_root=data_root, workers=workers, backend=backend, address=address,
+                   show_progress=show_progress, status_file=status_file(plan.spec), locked=True, on_job_done=split)
     for cell in plan.cells:
         if result.status.get(cell.id) not in ("done", "skipped"):
             continue
@@ -396,18 +416,7 @@ def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"),
                 done += 1
             except Exception as err:  # a failed probe is reported; the others go on
                 errors[label] = f"{type(err).__name__}: {err}"
-        c = cell.config
-        # the split is the trained model's: bati-r and bati-auto share bati's training, so bati's run has it
-        if (plan.spec.likelihood_split and has_task_table(c.method) and training_of(c.method) == c.method
-                and likelihood_split_due(c.out_dir, c.steps, c.eval_context_length)):
-            label = f"{cell.label} likelihood"
-            if on_probe is not None:
-                on_probe(label)
-            try:
-                save_likelihood_split(c.out_dir, c.eval_context_length)
-                done += 1
-            except Exception as err:  # reported like a failed probe
-                errors[label] = f"{type(err).__name__}: {err}"
+        split([cell])  # a skipped cell's split, where its checkpoint is at hand and none is saved
     return ExperimentResult(plan, result, done, errors, time.perf_counter() - start)
 
 

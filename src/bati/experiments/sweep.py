@@ -282,11 +282,14 @@ def record_lock(out_dir: Path, status_file: str = "sweep.json"):
 
 def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
           backend: Literal["local", "ray"] = "local", address: str | None = None,
-          show_progress: bool = True, status_file: str = "sweep.json", locked: bool = False) -> SweepResult:
+          show_progress: bool = True, status_file: str = "sweep.json", locked: bool = False,
+          on_job_done: Callable[[list[Cell]], None] | None = None) -> SweepResult:
     """Run every cell of `grid` (or of several grids, e.g. an experiment's parts) that is not finished
     yet; see the module docstring. `status_file` names the status record in `out_dir` (experiments
     sharing one directory, and so their common cells, keep one each); `locked`: the caller already
-    holds its `record_lock`."""
+    holds its `record_lock`; `on_job_done`: called with a finished job's done cells (those evaluated
+    alongside too) once they are recorded, before the next job starts (an experiment's per-run work, kept
+    when a session ends before the sweep does)."""
     out_dir = Path(out_dir)
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise SweepError(f"workers must be an integer >= 1, got {workers!r}")
@@ -296,7 +299,7 @@ def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("dat
     if not locked:
         with record_lock(out_dir, status_file):
             return sweep(grid, out_dir, data_root=data_root, workers=workers, backend=backend, address=address,
-                         show_progress=show_progress, status_file=status_file, locked=True)
+                         show_progress=show_progress, status_file=status_file, locked=True, on_job_done=on_job_done)
     start = time.perf_counter()
     grids = [grid] if isinstance(grid, Grid) else list(grid)
     if not grids:
@@ -346,6 +349,8 @@ def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("dat
             record()
             table.refresh()
             table.log(job, f"failed ({error})" if error else "done")
+            if on_job_done is not None and not error:
+                on_job_done([cell for cell in job.cells + job.alongside if status[cell.id] == "done"])
 
         def running(job: Job) -> None:
             for cell in job.cells + job.alongside:
