@@ -132,8 +132,7 @@ run_experiment() {  # $1 experiment, $2 family, then its methods: one `bati expe
 fill() {  # $1: the pid of the first family's collection. The GPU idles meanwhile (~100-135 s of a 15-minute session),
   # so FILL's experiment on FILL_FAMILY (default KuhnPoker, whose data takes ~1 minute on one core) runs one method's
   # job at a time until that collection ends; the first family then waits for the job at hand only.
-  local family=${FILL_FAMILY:-KuhnPoker} method
-  local rc
+  local family=${FILL_FAMILY:-KuhnPoker} method rc
   collect "$family" 1; rc=$?; echo "$family data for $FILL (rc $rc) after $(( $(date +%s) - start )) s"
   # one line and no jobs when the data cannot be had (2026-11-27: OpenSpiel missing, 8 jobs failed one by one)
   [ "$rc" -eq 0 ] || { tail -1 "$results/collect-$family.log"; echo "no $FILL fill"; return; }

@@ -160,22 +160,22 @@ def best_on_p_test(records: list[Record], families: tuple[str, ...],
     name = method.upper()
     lines, decisions, tested = [], [], 0
     for family in families:
-        bati = _scores(records, method, family)
+        subject = _scores(records, method, family)
         parts, family_decisions = [], []
         for baseline in baselines:
             other = _scores(records, baseline, family)
-            if not len(other) or not len(bati):
+            if not len(other) or not len(subject):
                 continue
-            if not _seeds_ok(bati, other):
+            if not _seeds_ok(subject, other):
                 parts.append(f"{baseline} {other.mean():.2f} ({len(other)} seed(s))")
                 continue
-            p = _p(bati, other)
+            p = _p(subject, other)
             family_decisions.append(_decides(p))
             parts.append(f"P({name} > {baseline}) {_fmt_p(p)}")
         if not parts:
             continue
-        lead = f"{name} {bati.mean():.2f}" if len(bati) else f"{name}: no run"
-        lines.append(f"{family}: {lead} ({len(bati)} seed(s)); " + "; ".join(parts))
+        lead = f"{name} {subject.mean():.2f}" if len(subject) else f"{name}: no run"
+        lines.append(f"{family}: {lead} ({len(subject)} seed(s)); " + "; ".join(parts))
         if family_decisions:
             tested += 1
             decisions.append(1 if all(d == 1 for d in family_decisions) else -1 if -1 in family_decisions else 0)

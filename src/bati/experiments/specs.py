@@ -372,8 +372,8 @@ class ExperimentResult:
 def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
                    backend: str = "local", address: str | None = None, show_progress: bool = True,
                    on_probe: Callable[[str], None] | None = None, locked: bool = False) -> ExperimentResult:
-    """Run the plan's cells that are not finished (one sweep), then the probes of the finished ones (and, where
-    the spec keeps it, the likelihood split of their BATI runs), holding the experiment's sweep record all along
+    """Run the plan's cells that are not finished (one sweep; where the spec keeps it, each BATI run's likelihood
+    split as its job ends), then the probes of the finished ones, holding the experiment's sweep record all along
     (a second process on it is refused at once;
     `locked`: the caller holds `record_lock(out_dir, status_file(plan.spec))` already)."""
     if not locked:
