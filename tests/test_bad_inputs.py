@@ -611,7 +611,7 @@ def test_a_lock_without_flock_takes_over_only_dead_pids_of_this_host(tmp_path, m
 
 
 # --- kill -9 at random points, then resume ----------------------------------------------------------
-KILLS = 6  # random kill points per test, each in the process resumed after the previous kill
+KILLS = 4  # random kill points per test, each in the process resumed after the previous kill
 TRAIN_SCRIPT = textwrap.dedent("""
     import sys
     from pathlib import Path
