@@ -30,7 +30,9 @@
 # limit still returns the runs finished before. Here: `gpu_local.py unpack` (above), then `bati experiment E --scale
 # paper --report-only --out-dir results/paper/experiments` for each E of EXPERIMENTS, and `bati claims`.
 # FILL=kuhn (an experiment): while the first family's data is collected, FILL's family (FILL_FAMILY, default
-# KuhnPoker: its data takes a minute on one core) trains FILL's methods one job at a time on the idle GPU.
+# KuhnPoker) is collected on FILL_WORKERS cores (default 4; the family gets the others) and trains FILL's methods
+# one job at a time on the idle GPU. On one core Kuhn's data took 70.8 s, as long as HalfCheetahDir's on 15
+# (2026-11-28, H200), so no Kuhn job began; on 4 it should take ~20 s.
 # CPU dry run: MODE=fg SCALE=quick METHODS=bati SEEDS="0 1" SETTINGS="steps=200" DATA=... bash this file.
 set -u
 mode=${MODE:-fg}
@@ -85,7 +87,8 @@ work() {  # the session's work: benchmark, then family after family
     collect "$1" $((cores > 1 ? cores - 1 : 1)); echo "$1 data (rc $?) after $(( $(date +%s) - start )) s"
     wait "$bench"; echo "benchmark (rc $?) after $(( $(date +%s) - start )) s"; cat "$results/bench.md"
   elif [ -n "${FILL:-}" ]; then
-    collect "$1" $((cores > 1 ? cores - 1 : 1)) &
+    fill_workers=$(( ${FILL_WORKERS:-4} < cores ? ${FILL_WORKERS:-4} : 1 ))
+    collect "$1" $((cores > fill_workers ? cores - fill_workers : 1)) &
     first=$!
     fill "$first"
     wait "$first"; echo "$1 data (rc $?) after $(( $(date +%s) - start )) s"
@@ -130,10 +133,10 @@ run_experiment() {  # $1 experiment, $2 family, then its methods: one `bati expe
 }
 
 fill() {  # $1: the pid of the first family's collection. The GPU idles meanwhile (~100-135 s of a 15-minute session),
-  # so FILL's experiment on FILL_FAMILY (default KuhnPoker, whose data takes ~1 minute on one core) runs one method's
+  # so FILL's experiment on FILL_FAMILY (default KuhnPoker, whose data takes ~70 s on one core) runs one method's
   # job at a time until that collection ends; the first family then waits for the job at hand only.
   local family=${FILL_FAMILY:-KuhnPoker} method rc
-  collect "$family" 1; rc=$?; echo "$family data for $FILL (rc $rc) after $(( $(date +%s) - start )) s"
+  collect "$family" "$fill_workers"; rc=$?; echo "$family data for $FILL (rc $rc) after $(( $(date +%s) - start )) s"
   # one line and no jobs when the data cannot be had (2026-11-27: OpenSpiel missing, 8 jobs failed one by one)
   [ "$rc" -eq 0 ] || { tail -1 "$results/collect-$family.log"; echo "no $FILL fill"; return; }
   for method in $(chosen_methods "$FILL" "$family"); do
