@@ -50,7 +50,8 @@ seeds=${SEEDS:-"0 1 2"}
 workers=${WORKERS:-1}
 cores=$(nproc)
 eval_workers=${EVAL_WORKERS:-$((cores > 5 ? cores - 4 : 1))}
-settings="eval_workers=$eval_workers${SETTINGS:+ $SETTINGS}"
+# evaluation (CPU MuJoCo, 10-40% of a job) runs in a thread while the GPU trains on (TrainConfig.eval_beside_training)
+settings="eval_workers=$eval_workers eval_beside_training=true${SETTINGS:+ $SETTINGS}"
 budget=${BUDGET_S:-540}
 watch=${WATCH_S:-540}
 data=${DATA:-/tmp/bati-data}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import threading
 from pathlib import Path
 
 import flax
@@ -466,6 +467,73 @@ def test_methods_evaluated_alongside_get_the_runs_they_would_have_trained_alone(
         assert saved["p_test_return"] == alone["p_test_return"] and saved["method"] == method
     assert "state_weight" in _evals(runs / "bati-auto-seed0")[-1]  # BATI-auto calibrated, as alone
     assert together[0]["method"] == "bati"
+
+
+def _without_wall_time(path):
+    return [{k: v for k, v in json.loads(line).items() if k != "wall_time"} for line in path.read_text().splitlines()]
+
+
+def test_evaluating_beside_training_gives_the_files_of_evaluating_in_turn(tmp_path, point_data):
+    # two seeds in one program, bati-r evaluated alongside, evaluations (every 5 steps) without and with a
+    # checkpoint (every 10): the thread changes when the records are written, not what they say
+    settings = dict(steps=20, eval_every=5, checkpoint_every=10)
+    for name, beside in (("in-turn", False), ("beside", True)):
+        train_seeds(_config(tmp_path, "unused", eval_beside_training=beside, **settings), (0, 1), show_progress=False,
+                    runs_dir=tmp_path / name, also=("bati-r",))
+    for run in ("bati-seed0", "bati-seed1", "bati-r-seed0", "bati-r-seed1"):
+        a, b = tmp_path / "in-turn" / run, tmp_path / "beside" / run
+        assert [e["step"] for e in _evals(b)] == [5, 10, 15, 20]
+        assert _evals(a) == _evals(b), run
+        assert _without_wall_time(a / "metrics.jsonl") == _without_wall_time(b / "metrics.jsonl"), run
+        assert (a / "checkpoint.msgpack").read_bytes() == (b / "checkpoint.msgpack").read_bytes(), run
+        saved = [json.loads((d / "eval.json").read_text()) for d in (a, b)]
+        assert saved[0]["p_test_return"] == saved[1]["p_test_return"]
+
+
+def test_training_goes_on_while_an_evaluation_runs_beside_it(tmp_path, point_data, monkeypatch):
+    # the evaluation of step 10 waits until training has logged step 15: it can end only if training went on
+    logged_15, saw = threading.Event(), []
+    real_append, real_evaluate = train_module.append_jsonl, Evaluator.evaluate_runs
+
+    def append(path, record):
+        real_append(path, record)
+        if path.name == "metrics.jsonl" and record["step"] >= 15:
+            logged_15.set()
+
+    def evaluate_runs(self, states, keys, seeds):
+        if seeds[0] == 10:  # seed 0 * 7919 + step 10
+            saw.append(logged_15.wait(timeout=120))
+        return real_evaluate(self, states, keys, seeds)
+
+    monkeypatch.setattr(train_module, "append_jsonl", append)
+    monkeypatch.setattr(Evaluator, "evaluate_runs", evaluate_runs)
+    train(_config(tmp_path, "run", eval_beside_training=True), show_progress=False)
+    assert saw == [True]
+    assert [e["step"] for e in _evals(tmp_path / "run")] == [10, 20]
+
+
+def test_a_checkpoint_waits_for_the_evaluation_of_its_step_beside_training(tmp_path, point_data, monkeypatch):
+    # step 20's evaluation fails in its thread: the run stops with step 10's checkpoint and evaluation only, and
+    # resuming it gives the run trained without a failure
+    real_evaluate = Evaluator.evaluate_runs
+
+    def evaluate_runs(self, states, keys, seeds):
+        if seeds[0] == 20:
+            raise KeyboardInterrupt  # as a kill would stop it
+        return real_evaluate(self, states, keys, seeds)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(Evaluator, "evaluate_runs", evaluate_runs)
+        with pytest.raises(KeyboardInterrupt):
+            train(_config(tmp_path, "resumed", eval_beside_training=True), show_progress=False)
+    resumed = tmp_path / "resumed"
+    assert [e["step"] for e in _evals(resumed)] == [10] and not (resumed / "eval.json").exists()
+    template = Trainer(_config(tmp_path, "x").resolved(), point_data, family_of("PointGoal")).init(jax.random.PRNGKey(0))
+    assert int(checkpoints_module.load_checkpoint(resumed / "checkpoint.msgpack", template).step) == 10
+    train(_config(tmp_path, "resumed", eval_beside_training=True), show_progress=False)
+    train(_config(tmp_path, "straight"), show_progress=False)
+    assert _evals(resumed) == _evals(tmp_path / "straight")
+    assert (resumed / "checkpoint.msgpack").read_bytes() == (tmp_path / "straight" / "checkpoint.msgpack").read_bytes()
 
 
 def test_a_method_evaluated_alongside_follows_a_resumed_run_and_one_of_its_own_is_left_alone(tmp_path, point_data,

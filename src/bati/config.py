@@ -91,6 +91,10 @@ class TrainConfig:
     eval_workers: int = 1
     """Processes that step the evaluation's MuJoCo envs (1: this one). The same numbers whatever the count;
     on a GPU machine evaluation is CPU-bound, so give it the spare cores. Not part of the run's identity."""
+    eval_beside_training: bool = False
+    """Evaluate in a thread while the next chunks train (on a GPU machine the device trains during the CPU-bound
+    evaluation instead of idling); a checkpoint at an evaluation's step is saved once that evaluation's records
+    are written. The same numbers either way. Not part of the run's identity."""
     log_every: int = 100
     noise: float | None = None
     """The family's eps for data and evaluation (default: the family's)."""
@@ -437,11 +441,11 @@ RECORD_ONLY = frozenset({"runtime", "family_version", "rl_hidden_dims"})
 
 # --- identity across versions ----------------------------------------------------------------
 # Where a run lives is not what it is: these fields may differ when a run directory is moved or resumed.
-NOT_IDENTITY = ("out_dir", "data_root", "log_to", "zoo_dir", "eval_workers")
+NOT_IDENTITY = ("out_dir", "data_root", "log_to", "zoo_dir", "eval_workers", "eval_beside_training")
 # Fields added to TrainConfig after runs were recorded: a saved config without one had this value.
 LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": None, "test_task_range": None,
                 "datasets": [], "task_key": None, "held_out": 0.2, "eval_env": None, "family_version": 1,
-                "zoo_dir": None}
+                "zoo_dir": None, "eval_beside_training": False}
 # Method hyperparameters added after runs were recorded (in every section whose Config has the field): a
 # saved section without one had this value. (csro.club_negatives is not one: its old value is not its default.)
 LATER_METHOD_FIELDS = {"distance": "squared"}

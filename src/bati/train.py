@@ -20,6 +20,7 @@ import math
 import os
 import platform
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -364,7 +365,9 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
              progress, bar, companions: dict[str, Evaluator] | None = None) -> None:
     """Train `runs` (all at the same step) together up to step `until`: chunks of log_every steps,
     vmapped over the runs when there are several, with their logs, evaluations and checkpoints; `companions`:
-    the evaluator of each method evaluated alongside some of the runs."""
+    the evaluator of each method evaluated alongside some of the runs. With `eval_beside_training` an evaluation
+    runs in a thread while the next chunks train, and the checkpoint of its step is saved once its records are
+    written (so a resumed run never lacks an evaluation before its checkpoint); the numbers are the same."""
     c = runs[0].config
     step = runs[0].step
     last_checkpoint = time.monotonic()
@@ -396,55 +399,104 @@ def _advance(trainer: Trainer, evaluator: Evaluator, data, runs: list[_SeedRun],
         """The runs that `method` is evaluated alongside."""
         return [j for j, run in enumerate(runs) if any(a.method == method for a in run.alongside)]
 
+    def evaluations(at: int) -> list[tuple]:
+        """What the evaluation at step `at` evaluates, fixed now (the states move on): (method, evaluator,
+        inputs, members) for the runs (method None) and for each method evaluated alongside some of them."""
+        out = [(None, evaluator, evaluation_inputs(at), list(range(len(runs))))]
+        for method, companion in (companions or {}).items():
+            if members := followers(method):
+                out.append((method, companion, evaluation_inputs(at, members), members))
+        return out
+
+    def evaluate(todo: list[tuple]) -> list[tuple]:
+        """Run the evaluations (here or in the evaluation thread): (method, members, results, seconds) each."""
+        done = []
+        for method, each, inputs, members in todo:
+            began = time.perf_counter()
+            results = each.evaluate_runs(*inputs)
+            done.append((method, members, results, time.perf_counter() - began))
+        return done
+
+    def write_evaluations(at: int, done: list[tuple]) -> None:
+        for method, members, results, seconds in done:
+            for j, result in zip(members, results):
+                if method is None:
+                    append_jsonl(runs[j].out / "eval.jsonl", {"step": at, **result.summary()})
+                    for sink in runs[j].sinks:
+                        sink.log(at, result.summary(), "eval")
+                    continue
+                out = next(a.out_dir for a in runs[j].alongside if a.method == method)
+                append_jsonl(out / "eval.jsonl", {"step": at, **result.summary()})
+                spent = runs[j].alongside_seconds
+                spent[method] = spent.get(method, 0.0) + seconds / len(members)
+        progress.update(bar, status=evaluator.status(done[0][2]))
+
+    def save_checkpoints(snapshot) -> None:
+        """Each run's checkpoint from the (stacked) state `snapshot`."""
+        nonlocal last_checkpoint
+        for j, run in enumerate(runs):
+            own = snapshot if alone else jax.tree_util.tree_map(lambda x, j=j: x[j], snapshot)
+            save_checkpoint(run.out / CHECKPOINT_NAME, own)
+        last_checkpoint = time.monotonic()
+
+    beside = ThreadPoolExecutor(1, thread_name_prefix="bati-eval") if c.eval_beside_training else None
+    pending = None  # the evaluation running beside training: (step, future, the state to checkpoint or None)
+
+    def land() -> None:
+        """Wait for the evaluation running beside training, write its records, then its step's checkpoint."""
+        nonlocal pending
+        if pending is None:
+            return
+        at, future, snapshot = pending
+        pending = None
+        write_evaluations(at, future.result())
+        if snapshot is not None:
+            save_checkpoints(snapshot)
+
     if (step // c.eval_every + 1) * c.eval_every <= until or until == c.steps:  # an evaluation comes: prepare it
         evaluator.warm_up(*evaluation_inputs(step))
         for method, companion in (companions or {}).items():
             if members := followers(method):
                 companion.warm_up(*evaluation_inputs(step, members))
 
-    while step < until:
-        length = min(c.log_every, until - step)
-        if alone:
-            state, metrics = trainer.run_chunk(state, train_keys[0], data.train, length=length)
-            metrics = jax.tree_util.tree_map(lambda x: x[None], metrics)
-        else:
-            states, metrics = trainer.run_chunks(states, train_keys, data.train, length=length)
-        step += length
-        metrics = jax.device_get(metrics)
-        for j, run in enumerate(runs):
-            record = {k: float(v[j]) for k, v in metrics.items()}
-            bad = [k for k, v in record.items() if not math.isfinite(v)]
-            if bad:
-                raise TrainingError(f"{run.out}: non-finite {', '.join(bad)} at step {step}; the last good "
-                                    f"checkpoint (if any) is untouched in {run.out / CHECKPOINT_NAME}")
-            append_jsonl(run.out / "metrics.jsonl", {"step": step, "wall_time": time.perf_counter() - start, **record})
-            for sink in run.sinks:
-                sink.log(step, record, "train")
-        if step % c.eval_every == 0 or step == c.steps:
-            results = evaluator.evaluate_runs(*evaluation_inputs(step))
-            for run, result in zip(runs, results):
-                append_jsonl(run.out / "eval.jsonl", {"step": step, **result.summary()})
+    try:
+        while step < until:
+            length = min(c.log_every, until - step)
+            if alone:
+                state, metrics = trainer.run_chunk(state, train_keys[0], data.train, length=length)
+                metrics = jax.tree_util.tree_map(lambda x: x[None], metrics)
+            else:
+                states, metrics = trainer.run_chunks(states, train_keys, data.train, length=length)
+            step += length
+            metrics = jax.device_get(metrics)
+            for j, run in enumerate(runs):
+                record = {k: float(v[j]) for k, v in metrics.items()}
+                bad = [k for k, v in record.items() if not math.isfinite(v)]
+                if bad:
+                    raise TrainingError(f"{run.out}: non-finite {', '.join(bad)} at step {step}; the last good "
+                                        f"checkpoint (if any) is untouched in {run.out / CHECKPOINT_NAME}")
+                append_jsonl(run.out / "metrics.jsonl",
+                             {"step": step, "wall_time": time.perf_counter() - start, **record})
                 for sink in run.sinks:
-                    sink.log(step, result.summary(), "eval")
-            for method, companion in (companions or {}).items():  # the same states and keys, their inference
-                members = followers(method)
-                if not members:
-                    continue
-                began = time.perf_counter()
-                outcomes = companion.evaluate_runs(*evaluation_inputs(step, members))
-                for j, result in zip(members, outcomes):
-                    out = next(a.out_dir for a in runs[j].alongside if a.method == method)
-                    append_jsonl(out / "eval.jsonl", {"step": step, **result.summary()})
-                    spent = runs[j].alongside_seconds
-                    spent[method] = spent.get(method, 0.0) + (time.perf_counter() - began) / len(members)
-            progress.update(bar, status=evaluator.status(results))
-        if (step % c.checkpoint_every == 0 or step == c.steps
-                or time.monotonic() - last_checkpoint >= CHECKPOINT_SECONDS):
-            sync_runs()
-            for run in runs:
-                save_checkpoint(run.out / CHECKPOINT_NAME, run.state)
-            last_checkpoint = time.monotonic()
-        progress.update(bar, completed=step)  # the runs behind set the pace
+                    sink.log(step, record, "train")
+            checkpoint = (step % c.checkpoint_every == 0 or step == c.steps
+                          or time.monotonic() - last_checkpoint >= CHECKPOINT_SECONDS)
+            if step % c.eval_every == 0 or step == c.steps:
+                land()  # the one before, in step order
+                if beside is None:
+                    write_evaluations(step, evaluate(evaluations(step)))
+                else:
+                    snapshot = (state if alone else states) if checkpoint else None
+                    pending = (step, beside.submit(evaluate, evaluations(step)), snapshot)
+                    checkpoint = False  # saved by land(), after this evaluation's records
+            if checkpoint:
+                land()  # never a checkpoint ahead of an evaluation not yet written
+                save_checkpoints(state if alone else states)
+            progress.update(bar, completed=step)  # the runs behind set the pace
+        land()
+    finally:
+        if beside is not None:
+            beside.shutdown(wait=True, cancel_futures=True)
     sync_runs()
 
 
