@@ -17,10 +17,9 @@ import time
 
 import jax
 import numpy as np
-from train_step import DIMS, random_data
+from train_step import DIMS, make_trainer, random_data
 
 from bati.config import TrainConfig
-from bati.config import family_of
 from bati.train import describe_device
 from bati.trainer import Trainer
 
@@ -67,7 +66,7 @@ def main() -> None:
 def run(args) -> None:
     data = random_data(args.family)
     config = TrainConfig(family=args.family, method=args.method, scale=args.scale).resolved()
-    trainer = Trainer(config, data, family_of(config.family))
+    trainer = make_trainer(config, data)
     flops, bytes_accessed = cost_per_seed_step(trainer, data)
     print(f"device: {describe_device()}; jax {jax.__version__}; {args.family} {args.method} {args.scale} "
           f"({config.task_batch} x {config.batch_size}, IQL {config.iql.hidden_dims}); matmul precision "

@@ -18,6 +18,8 @@ import numpy as np
 
 from bati.data import FamilyData, TaskData
 from bati.config import TrainConfig, family_of
+from bati.experts import load as load_expert
+from bati.methods import METHODS
 from bati.trainer import Trainer
 
 DIMS = {"PointGoal": (2, 2, 2), "AntDir": (27, 8, 2), "HalfCheetahVel": (17, 6, 1), "HalfCheetahDir": (17, 6, 1),
@@ -35,6 +37,12 @@ def random_data(family: str, n_tasks: int = 20, n: int = 2000) -> FamilyData:
                       np.zeros((n_tasks, task_dim)), data, data, data, obs_dim, action_dim, task_dim)
 
 
+def make_trainer(config: TrainConfig, data: FamilyData) -> Trainer:
+    """The config's trainer, with the family's shipped expert for a method that imitates one (DPT)."""
+    expert = load_expert(config.family, config.zoo_dir) if METHODS[config.method].needs_expert_actions else None
+    return Trainer(config, data, family_of(config.family), expert)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--family", default="HalfCheetahVel", choices=sorted(DIMS))
@@ -47,7 +55,7 @@ def main() -> None:
     for method in args.methods:
         for scale in args.scales:
             config = TrainConfig(family=args.family, method=method, scale=scale).resolved()
-            trainer = Trainer(config, data, family_of(config.family))
+            trainer = make_trainer(config, data)
             state = trainer.init(jax.random.PRNGKey(0))
             state, _ = trainer.run_chunk(state, jax.random.PRNGKey(1), data.train, length=20)
             jax.block_until_ready(state)

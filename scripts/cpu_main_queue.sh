@@ -45,8 +45,10 @@ stop_at=${STOP_AT:-}
 minutes() {  # a seed's (or, "collect", a family's paper data) estimated minutes
   case $1 in
     bati+*|bati-r+*) echo 70;;  # BATI (or BATI-R) with the others of its training evaluated alongside
-    oracle|no-context) echo 35;; focal|unicorn) echo 45;; bati|bati-r|bati-auto|recon|dpt) echo 65;;
-    csro|er-trl) echo 100;; collect) echo 40;; *) echo 100;;
+    oracle|no-context) echo 35;; focal|unicorn) echo 45;; bati|bati-r|bati-auto|recon) echo 65;;
+    csro|er-trl) echo 100;; collect) echo 40;;
+    dpt) echo 190;;  # 114 ms per step beside an ER-TRL job (benchmarks/train_step.py, 2026-11-28): more than a session
+    *) echo 100;;
   esac
 }
 fits() {  # $1: what (a method, or collect), $2: how many cells (default 1); true when they would finish before STOP_AT
