@@ -277,3 +277,16 @@ def test_bati_alone_positive_out_of_distribution_tests_nothing(tmp_path):
     assert verdicts(tmp_path)["C6"][0] == "not tested"
     write_cells(tmp_path, CPU, "ood-tasks", {("focal", "AntDir"): (HIGH, (-0.3, -0.2, -0.25))})
     assert verdicts(tmp_path)["C6"][0] == "reproduced"
+
+
+def test_a_family_whose_runs_are_too_few_to_rank_is_named_apart(tmp_path):
+    """ER-TRL with 3 seeds on AntDir and 2 on HopperParam: C8's summary names AntDir as its evidence and
+    HopperParam as runs without a ranking (it listed both as "2 of 5 families")."""
+    write_cells(tmp_path, CPU, "main", {("bati", f): (HIGH, HIGH) for f in ("AntDir", "HopperParam")}
+                | {("er-trl", "AntDir"): (HIGH, LOW)})
+    write_cells(tmp_path, CPU, "main", {("er-trl", "HopperParam"): (HIGH, LOW)}, seeds=(0, 1))
+    findings = decide(tmp_path)
+    c8 = next(f for f in findings if f.claim.name == "C8" and f.source is CPU)
+    assert c8.families == ["AntDir", "HopperParam"] and c8.thin == ["HopperParam"] and c8.verdict == "partly"
+    assert claims_module.every_scale(findings, c8.claim) == ("cpu: partly (AntDir; 1 of 5 families; "
+                                                             "fewer than 3 seeds: HopperParam)")

@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -385,6 +386,8 @@ class Finding:
     with the interval)."""
     flat: int
     """The compared cells with >= MIN_SEEDS seeds whose drift interval holds 0."""
+    thin: list[str] = field(default_factory=list)
+    """Those of `families` where no compared pair has MIN_SEEDS seeds yet: runs, but no ranking."""
 
 
 def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> list[Finding]:
@@ -399,22 +402,27 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
                 continue
             lines, verdict = claim.test(records, claim.families)
             compared = compared_families(records, claim)
+            ranked = compared_families(records, claim, seeds=MIN_SEEDS)
             moving, flat = convergence([r for r in records if r.family in compared], claim.methods)
             findings.append(Finding(claim, source, lines, verdict, len(records), compared,
                                     sorted({r.commit[:12] for r in records if r.commit}),
                                     sorted({r.device for r in records if r.device}),
-                                    jobs_wall_time((r.job, r.wall_time_s) for r in records), moving, flat))
+                                    jobs_wall_time((r.job, r.wall_time_s) for r in records), moving, flat,
+                                    [f for f in compared if f not in ranked]))
     return findings
 
 
-def compared_families(records: list[Record], claim: Claim) -> list[str]:
+def compared_families(records: list[Record], claim: Claim, seeds: int = 1) -> list[str]:
     """The claim's families where BATI and at least one method it is compared with ran (at `claim.levels` noise
-    levels): a family with BATI alone (or the Oracle alone, or, for C4, one eps) tests nothing, and its cells are
-    not the verdict's. The claim's subject is the first of its methods (BATI, or C9's BATI-R)."""
+    levels, with at least `seeds` seeds at each): a family with BATI alone (or the Oracle alone, or, for C4, one
+    eps) tests nothing, and its cells are not the verdict's. The claim's subject is the first of its methods
+    (BATI, or C9's BATI-R)."""
     subject, *others = claim.methods
 
     def levels(method, family):
-        return {r.noise for r in records if r.family == family and r.method == method}
+        runs = Counter(noise for noise, _ in {(r.noise, r.seed) for r in records
+                                              if r.family == family and r.method == method})
+        return {noise for noise, n in runs.items() if n >= seeds}
 
     if not claim.needs_baseline:
         return [f for f in claim.families if len(levels(subject, f)) >= claim.levels]
@@ -463,16 +471,23 @@ def every_scale(findings: list[Finding], claim: Claim) -> str:
     """The verdict at each scale that tests the claim, smallest first: a thin slice at a large scale (one
     family on a GPU, say) stands beside the wider evidence of a smaller one instead of hiding it."""
 
-    def coverage(families: list[str]) -> str:
-        if len(families) == len(claim.families) > 1:
-            return f"all {len(families)} families"
-        return ", ".join(families) + (f"; {len(families)} of {len(claim.families)} families"
-                                      if len(families) < len(claim.families) else "")
+    def coverage(finding: Finding) -> str:
+        """The families with a ranking (>= MIN_SEEDS seeds), then those whose runs are too few to rank."""
+        families = [f for f in finding.families if f not in finding.thin]
+        if not families:
+            text = ""
+        elif len(families) == len(claim.families) > 1:
+            text = f"all {len(families)} families"
+        else:
+            text = ", ".join(families) + (f"; {len(families)} of {len(claim.families)} families"
+                                          if len(families) < len(claim.families) else "")
+        thin = f"fewer than {MIN_SEEDS} seeds: {', '.join(finding.thin)}" if finding.thin else ""
+        return "; ".join(part for part in (text, thin) if part)
 
     def moving(finding: Finding) -> str:
         return f"; still moving: {', '.join(cell for cell, _ in finding.moving)}" if finding.moving else ""
 
-    return "; ".join(f"{_scale_name(f)}: {f.verdict} ({coverage(f.families)}{moving(f)})"
+    return "; ".join(f"{_scale_name(f)}: {f.verdict} ({coverage(f)}{moving(f)})"
                      for f in _tested(findings, claim)) or "-"
 
 
