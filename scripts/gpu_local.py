@@ -12,7 +12,7 @@ logs, most of the bytes, stay here). `back` undoes both. `unpack` takes a call's
 result file but checkpoints) and resume-*.tar (the checkpoint of each unfinished run); finished cells not yet
 committed go into results/paper/experiments, the unfinished runs (with their checkpoints) into .gpu/resume/, which
 the next session's first call carries and resumes from instead of step 0, their logs (no checkpoints) and the
-session's logs into --logs.
+session's logs into --logs, a new folder (one per session: two sessions of a day need two names).
 """
 
 from __future__ import annotations
@@ -145,6 +145,8 @@ def unpack(root: Path, files_at: Path, logs: Path) -> None:
     committed = root / COMMITTED
     if not committed.is_dir():
         raise GpuLocalError(f"{committed} is not there: `back` first")
+    if logs.is_dir() and any(logs.iterdir()):  # an earlier session's logs, committed perhaps: never overwrite them
+        raise GpuLocalError(f"{logs} already holds files (an earlier session's logs?): name a new --logs folder")
     with tempfile.TemporaryDirectory() as tmp:
         stage = Path(tmp)
         for archive in [pack, *sorted(files_at.glob("resume-*.tar"))]:

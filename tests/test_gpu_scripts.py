@@ -104,6 +104,21 @@ def test_unpack_refuses_a_folder_without_a_pack_in_one_line(tmp_path):
     assert done.stderr.strip().count("\n") == 0 and "results.tar.gz" in done.stderr
 
 
+def test_unpack_never_overwrites_an_earlier_sessions_logs(tmp_path):
+    out = pack(tmp_path, device_results(tmp_path))
+    root = tmp_path / "checkout"
+    committed = root / "results" / "paper" / "experiments"
+    committed.mkdir(parents=True)
+    logs = root / "results" / "paper" / "h200-x"
+    logs.mkdir(parents=True)
+    (logs / "session.log").write_text("an earlier session's\n")
+    done = gpu_local(root, "unpack", str(out), "--logs", "results/paper/h200-x")
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.strip().count("\n") == 0 and "new --logs folder" in done.stderr
+    assert (logs / "session.log").read_text() == "an earlier session's\n"
+    assert list(committed.iterdir()) == [] and not (root / ".gpu" / "resume").exists()  # nothing done
+
+
 def test_away_leaves_a_slim_copy_of_the_committed_cells_and_back_restores_results(tmp_path):
     root = tmp_path / "checkout"
     committed = root / "results" / "paper" / "experiments"
