@@ -8,7 +8,7 @@ For each run (its last checkpoint) this infers z from `--repeats` contexts of ev
 absolute component, the spread of z within a task (over contexts, the encoder's noise) and between tasks
 (of the per-task means, what carries the task).
 
-    python benchmarks/latent_scale.py results/cpu/experiments/HalfCheetahVel/cpu-eps1-e867f1c3/er-trl-seed0 \
+    python benchmarks/latent_scale.py results/cpu/experiments/HalfCheetahVel/cpu-eps1-41518e24/er-trl-seed0 \
         results/cpu/experiments/HalfCheetahVel/cpu-eps1-e867f1c3/csro-seed0 \
         --out results/diagnostics/latent-scale-HalfCheetahVel-cpu.json
 """

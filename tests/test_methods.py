@@ -11,7 +11,7 @@ import numpy as np
 import optax
 import pytest
 
-from bati.config import TrainConfig
+from bati.config import TrainConfig, differing_settings, digest_view
 from bati.envs import get_family
 from bati.methods import MethodSpec, make_method
 from bati.methods.bati import BATI, BATIConfig
@@ -210,6 +210,48 @@ def test_every_focal_family_method_trains_with_the_root_mean_distance():
         (_, (_, a)), (_, (_, b)) = (m.loss(params, batch, jax.random.PRNGKey(1)) for m in (squared, root_mean))
         assert np.isfinite(float(b["metric_loss"])) and float(a["metric_loss"]) != float(b["metric_loss"]), name
     assert FOCALConfig().distance == "squared"
+
+
+def test_tanh_encoder_bounds_each_transition_before_the_mean():
+    from bati.methods.encoder import ContextEncoder
+
+    context = {"observations": 50.0 * jnp.ones((2, 5, 2)), "actions": -30.0 * jnp.ones((2, 5, 1)),
+               "rewards": jnp.linspace(-40.0, 40.0, 10).reshape(2, 5), "next_observations": jnp.ones((2, 5, 2))}
+    unbounded, bounded = ContextEncoder((16,), 3), ContextEncoder((16,), 3, "tanh")
+    params = unbounded.init(jax.random.PRNGKey(0), context)  # the same networks: only the output differs
+    per_transition = unbounded.apply(params, context, pool=False)
+    assert float(jnp.abs(per_transition).max()) > 1.0  # large inputs leave the plain encoder's latents unbounded
+    np.testing.assert_allclose(bounded.apply(params, context, pool=False), jnp.tanh(per_transition), rtol=1e-6)
+    np.testing.assert_allclose(bounded.apply(params, context), jnp.tanh(per_transition).mean(axis=-2), rtol=1e-6)
+
+
+def test_er_trl_bounds_its_latents_as_the_code_and_reads_old_runs_as_unbounded():
+    from bati.config import upgrade_record
+    from bati.methods.er_trl import ERTRLConfig
+    from bati.methods.focal import FOCALConfig
+
+    assert ERTRLConfig().latent_activation == "tanh" and FOCALConfig().latent_activation == "none"
+    assert CSROConfig().latent_activation == "none"
+    with pytest.raises(ValueError, match="^ertrl.latent_activation must be one of none, tanh, got 'relu'$"):
+        ERTRLConfig(latent_activation="relu").check()
+    method = make_method("er-trl", SPEC)
+    params = method.init(jax.random.PRNGKey(0))
+    big = jax.tree_util.tree_map(lambda x: 100.0 * x, params)  # an encoder whose raw outputs are far beyond 1
+    (_, (z, _)) = method.loss(big, _baseline_batch(), jax.random.PRNGKey(1))
+    assert float(jnp.abs(z).max()) <= 1.0
+    config = TrainConfig(family="AntDir", method="er-trl").resolved()
+    old = json.loads(json.dumps(config.record()))
+    old["ertrl"].pop("latent_activation")  # recorded before the setting existed: unbounded latents
+    assert upgrade_record(old)["ertrl"] == {**config.record()["ertrl"], "latent_activation": "none"}
+    assert TrainConfig.from_record(old).ertrl.latent_activation == "none"
+    assert differing_settings(old, config.record(), ["ertrl"]) == ["ertrl"]
+    # a FOCAL run recorded before the setting is today's FOCAL, in the same directory
+    focal = TrainConfig(family="AntDir", method="focal").resolved()
+    old_focal = json.loads(json.dumps(focal.record()))
+    old_focal["focal"].pop("latent_activation")
+    assert differing_settings(old_focal, focal.record(), ["focal"]) == []
+    assert digest_view(old_focal) == digest_view(focal.record())
+    assert digest_view(TrainConfig.from_record(old).record()) != digest_view(config.record())
 
 
 def test_club_bound_on_a_gaussian_toy_with_known_mutual_information():

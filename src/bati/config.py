@@ -448,10 +448,11 @@ LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": Non
                 "zoo_dir": None, "eval_beside_training": False}
 # Method hyperparameters added after runs were recorded (in every section whose Config has the field): a
 # saved section without one had this value. (csro.club_negatives is not one: its old value is not its default.)
-LATER_METHOD_FIELDS = {"distance": "squared"}
+LATER_METHOD_FIELDS = {"distance": "squared", "latent_activation": "none"}
 # Method hyperparameters added with a new default after runs were recorded: (method, section, field) -> the value a
 # saved run without the field had, which is not today's default (such runs are a setting of their own).
-CHANGED_METHOD_DEFAULTS = {("csro", "csro", "club_negatives"): "any-task", ("er-trl", "ertrl", "metric_weight"): 1.0}
+CHANGED_METHOD_DEFAULTS = {("csro", "csro", "club_negatives"): "any-task", ("er-trl", "ertrl", "metric_weight"): 1.0,
+                           ("er-trl", "ertrl", "latent_activation"): "none"}
 
 
 def _without_later_method_fields(section: dict) -> dict:
@@ -463,7 +464,8 @@ def upgrade_record(record: dict) -> dict:
     sections existed: IQL's temperature was called `beta`, and its hidden sizes were also recorded
     as `rl_hidden_dims` (the same value, copied into iql.hidden_dims). CSRO runs recorded before
     `csro.club_negatives` existed drew CLUB's negatives from any task (its default is now "same-task"); ER-TRL
-    runs recorded before `ertrl.metric_weight` existed weighted FOCAL's term 1 (its default is now the code's 10)."""
+    runs recorded before `ertrl.metric_weight` existed weighted FOCAL's term 1 (its default is now the code's 10),
+    and those recorded before `ertrl.latent_activation` existed had unbounded latents (its default is now "tanh")."""
     record = dict(record)
     iql = record.get("iql")
     if isinstance(iql, dict) and "beta" in iql:

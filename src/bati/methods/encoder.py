@@ -13,11 +13,14 @@ from bati.nets import MLP
 class ContextEncoder(nn.Module):
     """Per-transition MLP on (s, a, r, s'), mean-pooled over the context: (..., C, .) -> (..., latent).
 
-    With `pool=False` it returns the per-transition latents (..., C, latent).
+    With `pool=False` it returns the per-transition latents (..., C, latent). `activation="tanh"` bounds each
+    transition's latent in [-1, 1]^latent before the mean (the FOCAL / CSRO / ER-TRL code lineage's encoder);
+    "none" leaves it unbounded.
     """
 
     hidden_dims: Sequence[int]
     latent_dim: int
+    activation: str = "none"
 
     @nn.compact
     def __call__(self, context: dict, pool: bool = True):
@@ -26,6 +29,8 @@ class ContextEncoder(nn.Module):
             axis=-1,
         )
         per_transition = MLP(self.hidden_dims, self.latent_dim)(x)
+        if self.activation == "tanh":
+            per_transition = jnp.tanh(per_transition)
         return per_transition.mean(axis=-2) if pool else per_transition
 
 

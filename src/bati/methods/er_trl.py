@@ -13,6 +13,9 @@ Loss = w L_FOCAL - lambda * mean_t H_t + L_D + L_G (w = 10, the code's z_loss_we
 its own networks (stop_gradient keeps the adversarial game apart, as CSRO's CLUB), one optimiser step per
 training step.
 
+As the authors' code, the encoder bounds each transition's latent with tanh (`latent_activation`): FOCAL's metric
+sees only distances, and unbounded latents let the entropy term drift their common offset.
+
 Our choices (docs/methods.md): IQL instead of BRAC as the offline RL core (as every method here); one
 GAN update per step instead of the code's five, on the method's Adam (learning_rate 3e-4) instead of
 2e-4; lambda per family from the code's `mir_loss_weight` (FamilyRecord.entropy_weight) and FOCAL's term at the
@@ -23,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -47,6 +51,10 @@ class ERTRLConfig(FOCALConfig):
     metric_weight: float = 10.0
     """Weight of FOCAL's metric loss beside lambda H (the code's z_loss_weight): it sets the balance between
     separating tasks and raising the entropy (runs recorded before this field had 1.0)."""
+    latent_activation: Literal["none", "tanh"] = "tanh"
+    """The encoder bounds each transition's latent with tanh, as the authors' code does (FOCAL's metric sees only
+    distances, so unbounded latents let the entropy term drift their common offset: runs recorded before this
+    field had "none")."""
 
     def for_family(self, record: FamilyRecord | None) -> ERTRLConfig:
         if self.entropy_weight is not None:

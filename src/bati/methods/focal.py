@@ -33,14 +33,21 @@ class FOCALConfig:
     distance: Literal["squared", "root-mean"] = "squared"
     """How a pair's distance enters: squared and summed over dimensions (ours), or the code lineage's
     root-mean-square pull and mean-square push (module docstring)."""
+    latent_activation: Literal["none", "tanh"] = "none"
+    """The context encoder's output per transition: "tanh" bounds it in [-1, 1] before the mean (the FOCAL /
+    CSRO / ER-TRL code lineage's encoder); "none", unbounded (ours for FOCAL, UNICORN and CSRO: docs/methods.md)."""
 
     def check(self, section: str = "focal") -> None:
         """ValueError naming `section`.<setting> (the TrainConfig field holding these settings) for a bad value."""
         if self.distance not in DISTANCES:
             raise ValueError(f"{section}.distance must be one of {', '.join(DISTANCES)}, got {self.distance!r}")
+        if self.latent_activation not in LATENT_ACTIVATIONS:
+            raise ValueError(f"{section}.latent_activation must be one of {', '.join(LATENT_ACTIVATIONS)}, "
+                             f"got {self.latent_activation!r}")
 
 
 DISTANCES = ("squared", "root-mean")
+LATENT_ACTIVATIONS = ("none", "tanh")
 PULL_EPSILON = 1e-3
 """Keeps the root-mean pull's gradient finite at coincidence (the code lineage's value)."""
 
@@ -75,7 +82,7 @@ class FOCAL(TaskInference):
 
     def __init__(self, spec: MethodSpec, config=None):
         super().__init__(spec, config)
-        self.encoder = ContextEncoder(spec.encoder_dims, spec.latent_dim)
+        self.encoder = ContextEncoder(spec.encoder_dims, spec.latent_dim, self.config.latent_activation)
 
     def init(self, key):
         return {"encoder": self.encoder.init(key, dummy_context(self.spec))}
