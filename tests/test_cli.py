@@ -126,3 +126,21 @@ def test_run_reading_line_names_who_holds_and_who_falls():
     line = reading(rows, 3_000, 3)
     assert "best on p_test: recon. The paper's effect (BATI best under p_test contexts) does not show at 3,000 " \
            "steps and 3 seed(s)" in line and "decide no ranking" not in line
+
+
+def test_sigterm_is_a_one_line_error_with_exit_code_143(capsys, monkeypatch):
+    import signal
+    import time
+
+    from bati.cli import Envs
+
+    def terminated(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(10)  # the handler interrupts this
+
+    monkeypatch.setattr(Envs, "run", terminated)
+    before = signal.getsignal(signal.SIGTERM)
+    code, out, err = run(capsys)
+    assert code == 143
+    assert_one_line_error(out, err, "terminated", "run the same command again to resume")
+    assert signal.getsignal(signal.SIGTERM) is before

@@ -1,13 +1,55 @@
-"""The one process pool (bati.processes): spawned workers, stopped at once when the body fails."""
+"""The one process pool (bati.processes): spawned workers, stopped at once when the body fails, when the
+command is terminated (SIGTERM) and, by themselves, when their parent is killed outright."""
 
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
 import time
 
 import pytest
 
-from bati.processes import spawned_pool
+from bati.processes import Terminated, sigterm_as_interrupt, spawned_pool
+
+# A parent that prints its one worker's pid, then waits on a 120 s task in it; on SIGTERM it exits 143.
+PARENT = """
+import os, sys, time
+from bati.processes import Terminated, sigterm_as_interrupt, spawned_pool
+try:
+    with sigterm_as_interrupt(), spawned_pool(1) as pool:
+        print(pool.submit(os.getpid).result(), flush=True)
+        pool.submit(time.sleep, 120).result()
+except Terminated:
+    sys.exit(143)
+"""
+needs_proc = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+
+
+def gone(pid: int) -> bool:
+    """No such process, or a zombie (an orphan that exited, not reaped by a container's init)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+def wait_until_gone(pid: int, within_s: float = 30.0) -> bool:
+    deadline = time.monotonic() + within_s
+    while time.monotonic() < deadline:
+        if gone(pid):
+            return True
+        time.sleep(0.2)
+    return gone(pid)
+
+
+def start_parent() -> tuple[subprocess.Popen, int]:
+    parent = subprocess.Popen([sys.executable, "-c", PARENT], stdout=subprocess.PIPE, text=True)
+    worker = int(parent.stdout.readline())
+    assert worker != parent.pid and not gone(worker)
+    return parent, worker
 
 
 def test_a_spawned_pool_runs_tasks_in_other_processes():
@@ -25,3 +67,31 @@ def test_a_failing_body_stops_the_workers_at_once():
             time.sleep(0.5)  # ... and sleeping
             raise RuntimeError("interrupted")
     assert time.perf_counter() - start < 60  # not after the 120 s task
+
+
+@needs_proc
+def test_sigterm_to_the_parent_stops_its_workers_at_once():
+    parent, worker = start_parent()
+    start = time.monotonic()
+    parent.send_signal(signal.SIGTERM)
+    assert parent.wait(timeout=60) == 143  # Terminated reached the script: the pool's clean-up ran
+    assert wait_until_gone(worker), "the worker outlived its terminated parent"
+    assert time.monotonic() - start < 60  # not after the 120 s task
+
+
+@needs_proc
+def test_a_worker_exits_by_itself_when_its_parent_is_killed_outright():
+    parent, worker = start_parent()
+    parent.kill()  # SIGKILL: no clean-up runs in the parent
+    parent.wait(timeout=30)
+    assert wait_until_gone(worker), "an orphaned worker went on with its task"
+
+
+def test_sigterm_as_interrupt_raises_terminated_and_restores_the_handler():
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Terminated):
+        with sigterm_as_interrupt():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(10)  # interrupted by the handler
+    assert signal.getsignal(signal.SIGTERM) is before
+    assert issubclass(Terminated, KeyboardInterrupt)  # every Ctrl-C clean-up path covers SIGTERM too

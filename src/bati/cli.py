@@ -24,6 +24,7 @@ from bati.experiments.experiment import ExperimentJob
 from bati.experiments.main_job import MainJob, MainJobFailed
 from bati.experiments.sweep import Grid
 from bati.experts.train import ExpertTrainConfig
+from bati.processes import Terminated, sigterm_as_interrupt
 
 console = Console()
 # Errors go to stderr on one line, whatever the terminal width (soft_wrap: no hard line breaks).
@@ -465,7 +466,8 @@ COMMANDS = {"envs": Envs, "experts": Experts, "data": Data, "train": Train, "run
 def main(argv: list[str] | None = None) -> int:
     """Run one command. Every failure a user can cause or meet (bad input, a missing, damaged or locked
     file, an OS error such as a full disk) is one line on stderr, exit code 2; a sweep with failed cells
-    or a damaged collection found by `bati data verify`: exit code 1."""
+    or a damaged collection found by `bati data verify`: exit code 1; Ctrl-C 130 and SIGTERM 143, both after
+    the same clean-up (a sweep's workers stopped, locks released), so the same command resumes."""
     from bati.envs import TaskError
     from bati.errors import BatiError, describe_os_error
 
@@ -478,7 +480,7 @@ def main(argv: list[str] | None = None) -> int:
         command = _parse(argv)
     except SystemExit as exit_:
         return exit_.code if isinstance(exit_.code, int) else 2
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), sigterm_as_interrupt():
         warnings.simplefilter("always", BatiWarning)
         warnings.showwarning = _show_warning(warnings.showwarning)
         try:
@@ -489,6 +491,8 @@ def main(argv: list[str] | None = None) -> int:
             return _error(describe_os_error(err), 2)
         except (UserError, BatiError, TaskError, ValueError) as err:
             return _error(str(err), 2)
+        except Terminated:  # SIGTERM (kill, a scheduler): the same clean-up as Ctrl-C
+            return _error("terminated; run the same command again to resume", 143)
         except KeyboardInterrupt:
             return _error("interrupted; run the same command again to resume", 130)
     return 0

@@ -1,12 +1,52 @@
-"""The one process pool of bati: data collection's rollout workers and a sweep's local jobs."""
+"""The one process pool of bati: data collection's rollout workers and a sweep's local jobs; and SIGTERM
+turned into an interrupt, so that a terminated command cleans up as after Ctrl-C."""
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
+import threading
+import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like Ctrl-C's KeyboardInterrupt: the same clean-up runs (a pool's
+    workers stopped, locks released, the run resumable), where Python's default would die at once."""
+
+
+@contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Within the body SIGTERM raises Terminated in the main thread (elsewhere: nothing changes)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def raise_terminated(signum, frame):
+        raise Terminated(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _exit_when_orphaned(parent: int, every_s: float = 1.0) -> None:
+    while os.getppid() == parent:  # a dead parent's children are handed to another process
+        time.sleep(every_s)
+    os._exit(1)  # what a worker writes is atomic and resumable: stopping anywhere is safe
+
+
+def _start_worker(parent: int, initializer: Callable | None, initargs: tuple) -> None:
+    """A worker's first act: follow its parent. A parent killed outright (SIGKILL, a machine's session end)
+    cannot stop its workers, which would go on training and hold their runs' locks for hours."""
+    threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True, name="bati-orphan-watch").start()
+    if initializer is not None:
+        initializer(*initargs)
 
 
 @contextmanager
@@ -14,10 +54,11 @@ def spawned_pool(workers: int, initializer: Callable | None = None, initargs: tu
     """`workers` spawned processes (JAX is not fork-safe). They inherit this environment, in which JAX does
     not take most of a GPU's memory up front, so that several may share one GPU. When the body raises
     (an error, an interrupt), the workers are stopped at once rather than after their current task:
-    what they were writing is resumable by design (collections and runs checkpoint and write atomically)."""
+    what they were writing is resumable by design (collections and runs checkpoint and write atomically).
+    A worker whose parent dies without that clean-up (kill -9) exits by itself within a second or two."""
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     executor = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=initializer, initargs=initargs)
+                                   initializer=_start_worker, initargs=(os.getpid(), initializer, initargs))
     finished = False
     try:
         yield executor
