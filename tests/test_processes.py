@@ -95,3 +95,31 @@ def test_sigterm_as_interrupt_raises_terminated_and_restores_the_handler():
             time.sleep(10)  # interrupted by the handler
     assert signal.getsignal(signal.SIGTERM) is before
     assert issubclass(Terminated, KeyboardInterrupt)  # every Ctrl-C clean-up path covers SIGTERM too
+
+
+# A SIGTERM whose Terminated is raised inside a finaliser, where Python prints and ignores it (as in JAX's gc
+# callback): without the grace timer the body would sleep on for its 120 s.
+SWALLOWED = """
+import os, signal, sys, time
+from bati.processes import sigterm_as_interrupt
+
+class TerminatedInAFinaliser:
+    def __del__(self):
+        signal.raise_signal(signal.SIGTERM)  # the handler runs here; its exception is ignored
+
+
+with sigterm_as_interrupt(grace_s=1.0):
+    TerminatedInAFinaliser()
+    print("went on", flush=True)
+    time.sleep(120)
+"""
+
+
+def test_a_sigterm_lost_inside_a_finaliser_still_ends_the_process():
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-c", SWALLOWED], capture_output=True, text=True, timeout=60)
+    assert "Exception ignored" in done.stderr and "went on" in done.stdout  # the interrupt was lost ...
+    assert done.returncode == 143  # ... and the process ended all the same, after the grace
+    assert done.stderr.strip().splitlines()[-1] == \
+        "error: terminated (the interrupt was lost inside a callback); exiting"
+    assert time.perf_counter() - start < 30

@@ -6,6 +6,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -18,20 +19,38 @@ class Terminated(KeyboardInterrupt):
     workers stopped, locks released, the run resumable), where Python's default would die at once."""
 
 
+TERMINATED_EXIT_CODE = 128 + signal.SIGTERM
+
+
+def _exit_unless_handled(handled: threading.Event, grace_s: float) -> None:
+    if not handled.wait(grace_s):
+        print("error: terminated (the interrupt was lost inside a callback); exiting", file=sys.stderr, flush=True)
+        os._exit(TERMINATED_EXIT_CODE)  # what bati writes is atomic and resumable: stopping anywhere is safe
+
+
 @contextmanager
-def sigterm_as_interrupt() -> Iterator[None]:
-    """Within the body SIGTERM raises Terminated in the main thread (elsewhere: nothing changes)."""
+def sigterm_as_interrupt(grace_s: float = 30.0) -> Iterator[None]:
+    """Within the body SIGTERM raises Terminated in the main thread (elsewhere: nothing changes).
+
+    Python swallows an exception raised where it cannot propagate (a finaliser, a gc callback such as JAX's,
+    printed as "Exception ignored in ..."): a SIGTERM landing there would be lost and the command would go on
+    for hours. So each SIGTERM also starts a timer: unless the body has ended `grace_s` seconds later, the
+    process exits with code 143 outright."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    handled = threading.Event()
 
     def raise_terminated(signum, frame):
+        threading.Thread(target=_exit_unless_handled, args=(handled, grace_s), daemon=True,
+                         name="bati-sigterm-grace").start()
         raise Terminated(f"signal {signum}")
 
     previous = signal.signal(signal.SIGTERM, raise_terminated)
     try:
         yield
     finally:
+        handled.set()
         signal.signal(signal.SIGTERM, previous)
 
 
