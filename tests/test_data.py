@@ -8,6 +8,7 @@ import os
 import re
 import shutil
 import time
+from pathlib import Path
 from collections import Counter
 
 import h5py
@@ -139,6 +140,19 @@ def test_the_recorded_commit_says_when_the_code_differs_from_it(tmp_path):
     (tmp_path / "code.py").write_text("x = 1\n")
     (tmp_path / "new.py").write_text("y = 1\n")  # a new file counts too
     assert git_commit(tmp_path) == f"{head}-dirty"
+
+
+def test_the_running_code_commit_is_read_once_per_process(monkeypatch):
+    import bati.io as io
+
+    reads = []
+    monkeypatch.setattr(io, "_read_commit", lambda directory: reads.append(directory) or f"c{len(reads)}")
+    io._running_code_commit.cache_clear()
+    try:
+        assert git_commit() == "c1" and git_commit() == "c1"  # a commit made meanwhile is not the running code
+        assert reads == [Path(io.__file__).parent]
+    finally:
+        io._running_code_commit.cache_clear()
 
 
 # --- the collected data -----------------------------------------------------------------------

@@ -24,6 +24,7 @@ from bati.experiments.experiment import ExperimentJob
 from bati.experiments.main_job import MainJob, MainJobFailed
 from bati.experiments.sweep import Grid
 from bati.experts.train import ExpertTrainConfig
+from bati.io import git_commit
 from bati.processes import Terminated, sigterm_as_interrupt
 
 console = Console()
@@ -480,6 +481,7 @@ def main(argv: list[str] | None = None) -> int:
         command = _parse(argv)
     except SystemExit as exit_:
         return exit_.code if isinstance(exit_.code, int) else 2
+    git_commit()  # the running code's commit is read now, whatever is committed while the command runs
     with warnings.catch_warnings(), sigterm_as_interrupt():
         warnings.simplefilter("always", BatiWarning)
         warnings.showwarning = _show_warning(warnings.showwarning)

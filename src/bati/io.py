@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import socket
@@ -99,10 +100,23 @@ def _json_default(value: Any) -> Any:
 
 
 def git_commit(directory: Path | None = None) -> str:
-    """Short commit of the running code (the package's directory by default), with "-dirty" appended where
-    the files under `directory` differ from it (edits not committed: the commit alone would not give the
-    run back); "unknown" outside a git checkout."""
-    directory = Path(directory) if directory is not None else Path(__file__).parent
+    """Short commit of the code under `directory`, with "-dirty" appended where its files differ from it (edits
+    not committed: the commit alone would not give the run back); "unknown" outside a git checkout.
+
+    Without `directory`: the running code's commit (the package's directory), read once per process, at the
+    first call (`bati`'s commands make it at their start): a process runs the code it loaded, so a commit made
+    while a long run trains must not be recorded as the code of its results."""
+    if directory is None:
+        return _running_code_commit()
+    return _read_commit(Path(directory))
+
+
+@functools.cache
+def _running_code_commit() -> str:
+    return _read_commit(Path(__file__).parent)
+
+
+def _read_commit(directory: Path) -> str:
     try:
         def git(*args):
             return subprocess.run(["git", *args], capture_output=True, text=True, cwd=directory, timeout=5).stdout.strip()
