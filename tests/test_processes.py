@@ -121,5 +121,5 @@ def test_a_sigterm_lost_inside_a_finaliser_still_ends_the_process():
     assert "Exception ignored" in done.stderr and "went on" in done.stdout  # the interrupt was lost ...
     assert done.returncode == 143  # ... and the process ended all the same, after the grace
     assert done.stderr.strip().splitlines()[-1] == \
-        "error: terminated (the interrupt was lost inside a callback); exiting"
+        "error: terminated, and still running 1 s later: exiting now; run the same command again to resume"
     assert time.perf_counter() - start < 30

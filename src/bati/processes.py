@@ -24,7 +24,8 @@ TERMINATED_EXIT_CODE = 128 + signal.SIGTERM
 
 def _exit_unless_handled(handled: threading.Event, grace_s: float) -> None:
     if not handled.wait(grace_s):
-        print("error: terminated (the interrupt was lost inside a callback); exiting", file=sys.stderr, flush=True)
+        print(f"error: terminated, and still running {grace_s:g} s later: exiting now; run the same command again to "
+              "resume", file=sys.stderr, flush=True)
         os._exit(TERMINATED_EXIT_CODE)  # what bati writes is atomic and resumable: stopping anywhere is safe
 
 
@@ -35,7 +36,8 @@ def sigterm_as_interrupt(grace_s: float = 30.0) -> Iterator[None]:
     Python swallows an exception raised where it cannot propagate (a finaliser, a gc callback such as JAX's,
     printed as "Exception ignored in ..."): a SIGTERM landing there would be lost and the command would go on
     for hours. So each SIGTERM also starts a timer: unless the body has ended `grace_s` seconds later, the
-    process exits with code 143 outright."""
+    process exits with code 143 outright. That also bounds the clean-up, as a scheduler's grace period would (an
+    evaluation in flight beside training is not waited for: the run resumes from its last checkpoint)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
