@@ -246,6 +246,20 @@ def test_a_family_at_one_noise_level_does_not_count_for_the_noise_claim(tmp_path
         claims_module.every_scale([c4], c4.claim)
 
 
+def test_the_noise_claim_shows_bati_r_beside_bati_without_counting_it(tmp_path):
+    cells = {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, HIGH), ("bati-r", "AntDir"): (HIGH, HIGH)}
+    write_cells(tmp_path, CPU, "noise", cells)
+    for run in (tmp_path / CPU.out_dir / "AntDir").glob("cpu-eps1-*/bati-r-seed*"):  # BATI-R loses 0.5 at eps 1
+        record = json.loads((run / "eval.json").read_text())
+        (run / "eval.json").write_text(json.dumps(record | {"p_test_return": record["p_test_return"] - 0.5}))
+    c4 = next(f for f in decide(tmp_path) if f.claim.name == "C4" and f.source is CPU)
+    line = next(line for line in c4.lines if line.startswith("AntDir: "))
+    assert "BATI eps 0 -> 1: +0.00 [+0.00, +0.00]; (BATI-R, not a baseline: -0.50 [-0.50, -0.50]); focal +0.00" in line
+    write_cells(tmp_path / "without", CPU, "noise", {k: v for k, v in cells.items() if k[0] != "bati-r"})
+    without = next(f for f in decide(tmp_path / "without") if f.claim.name == "C4" and f.source is CPU)
+    assert c4.verdict == without.verdict  # BATI-R's fall is no evidence about the baselines
+
+
 def test_bati_alone_decides_whether_longer_contexts_help(tmp_path):
     """C5 is about BATI's own gain with the context's length: its runs count without a baseline beside them."""
     plan = plan_experiment(get_spec("context-length"), CPU.scale, tmp_path / CPU.out_dir, seeds=(0, 1, 2))

@@ -142,6 +142,13 @@ def test_the_recorded_commit_says_when_the_code_differs_from_it(tmp_path):
     assert git_commit(tmp_path) == f"{head}-dirty"
 
 
+def test_a_short_commit_keeps_its_dirty_mark():
+    from bati.io import short_commit
+
+    assert short_commit("e01df6a-dirty") == "e01df6a-dirty" and short_commit("e01df6a") == "e01df6a"
+    assert short_commit("0123456789abcdef0123456789abcdef01234567-dirty") == "0123456789ab-dirty"
+
+
 def test_the_running_code_commit_is_read_once_per_process(monkeypatch):
     import bati.io as io
 

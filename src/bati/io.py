@@ -111,6 +111,13 @@ def git_commit(directory: Path | None = None) -> str:
     return _read_commit(Path(directory))
 
 
+def short_commit(commit: str) -> str:
+    """A recorded commit for a report line: its hash cut to 12 characters (older runs recorded full hashes),
+    "-dirty" kept."""
+    head, dirty, _ = commit.partition("-dirty")
+    return head[:12] + dirty
+
+
 @functools.cache
 def _running_code_commit() -> str:
     return _read_commit(Path(__file__).parent)

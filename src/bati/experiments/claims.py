@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bati.io import short_commit
 from bati.experiments.probes import read_probe
 from bati.experiments.specs import MUJOCO, get_spec, plan_experiment
 from bati.report.convergence import NEGLIGIBLE, drift_interval, drift_verdict, run_drift
@@ -260,6 +261,10 @@ def noise_hurts_baselines(records: list[Record], families: tuple[str, ...]) -> t
             parts.append(f"BATI eps {low:g} -> {high:g}: {value:+.2f} [{lo:+.2f}, {hi:+.2f}]")
         else:
             parts.append(f"BATI eps {low:g} -> {high:g}: {bati.mean():+.2f} ({len(bati)} seed(s))")
+        reward_only = change("bati-r")  # BATI's reward-only likelihood: beside BATI, not a verdict input
+        if _seeds_ok(reward_only):
+            value, lo, hi = iqm_interval(reward_only, reps=REPS)
+            parts.append(f"(BATI-R, not a baseline: {value:+.2f} [{lo:+.2f}, {hi:+.2f}])")
         for baseline in BASELINES:
             other = change(baseline)
             if not len(other):
@@ -405,7 +410,7 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
             ranked = compared_families(records, claim, seeds=MIN_SEEDS)
             moving, flat = convergence([r for r in records if r.family in compared], claim.methods)
             findings.append(Finding(claim, source, lines, verdict, len(records), compared,
-                                    sorted({r.commit[:12] for r in records if r.commit}),
+                                    sorted({short_commit(r.commit) for r in records if r.commit}),
                                     sorted({r.device for r in records if r.device}),
                                     jobs_wall_time((r.job, r.wall_time_s) for r in records), moving, flat,
                                     [f for f in compared if f not in ranked]))
