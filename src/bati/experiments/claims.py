@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bati.io import short_commit
 from bati.experiments.probes import read_probe
 from bati.experiments.specs import MUJOCO, get_spec, plan_experiment
+from bati.io import short_commit
 from bati.report.convergence import NEGLIGIBLE, drift_interval, drift_verdict, run_drift
 from bati.report.runs import RunResult, jobs_wall_time
 from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval, require_rliable

@@ -343,7 +343,8 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
         f"Paper's claim: {spec.claim}.", "",
         f"- command: `{command}`" if command else "",
         f"- cells finished: {n_done} of {len(plan.cells)}; seeds {list(plan.seeds)}",
-        f"- commit(s): {', '.join(short_commit(c) for c in commits) or 'unknown'}; device(s): {', '.join(devices) or 'unknown'}",
+        f"- commit(s): {', '.join(short_commit(c) for c in commits) or 'unknown'}; "
+        f"device(s): {', '.join(devices) or 'unknown'}",
         f"- summed wall time of the finished training jobs: {train_wall / 60:.1f} min (the seeds of a job share its "
         "time; a resumed job's sessions add up)",
         "- numbers: mean over seeds (± std from 2 seeds on) of each run's mean of its last 5 evaluations"
