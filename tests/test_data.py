@@ -8,8 +8,8 @@ import os
 import re
 import shutil
 import time
-from pathlib import Path
 from collections import Counter
+from pathlib import Path
 
 import h5py
 import jax

@@ -25,7 +25,7 @@ from bati.experiments.main_job import MainJob, MainJobFailed
 from bati.experiments.sweep import Grid
 from bati.experts.train import ExpertTrainConfig
 from bati.io import git_commit
-from bati.processes import Terminated, sigterm_as_interrupt
+from bati.processes import TERMINATED_EXIT_CODE, Terminated, sigterm_as_interrupt
 
 console = Console()
 # Errors go to stderr on one line, whatever the terminal width (soft_wrap: no hard line breaks).
@@ -494,7 +494,7 @@ def main(argv: list[str] | None = None) -> int:
         except (UserError, BatiError, TaskError, ValueError) as err:
             return _error(str(err), 2)
         except Terminated:  # SIGTERM (kill, a scheduler): the same clean-up as Ctrl-C
-            return _error("terminated; run the same command again to resume", 143)
+            return _error("terminated; run the same command again to resume", TERMINATED_EXIT_CODE)
         except KeyboardInterrupt:
             return _error("interrupted; run the same command again to resume", 130)
     return 0
