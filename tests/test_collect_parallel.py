@@ -100,7 +100,7 @@ def test_worker_error_propagates_and_leaves_nothing(tmp_path, monkeypatch):
         (zoo / FAMILY / name).write_bytes((expert_dir / name).read_bytes())
     expert = real(FAMILY, zoo)  # the main process has its expert; the workers will find none
 
-    def main_only(family, zoo_dir=None):
+    def main_only(family, zoo_dir=None, experts="conditioned"):
         (zoo / FAMILY / "expert.json").unlink(missing_ok=True)
         return expert
 

@@ -93,8 +93,9 @@ class Envs:
 
 @dataclass
 class ExpertsTrain(ExpertTrainConfig):
-    """Train a family's task-conditioned SAC expert (checkpoints; re-running resumes). The export goes into
-    the run directory's zoo/ unless --export-dir or --into-package says otherwise."""
+    """Train a family's task-conditioned SAC expert, or with --per-task one SAC per training task (checkpoints;
+    re-running resumes). The export goes into the run directory's zoo/ unless --export-dir or --into-package
+    says otherwise."""
 
     def run(self) -> None:
         from bati.experts.train import train_expert
@@ -103,6 +104,8 @@ class ExpertsTrain(ExpertTrainConfig):
         out = train_expert(config)
         where = "the package zoo (every later collection of it uses this expert)" if config.into_package else \
             f"{config.export_dir} (collect with --zoo-dir {config.export_dir})"
+        if config.per_task:
+            where += " as per-task experts (collect with --experts per-task)"
         console.print(f"expert run in {out}; exported to {where}", soft_wrap=True)
 
 
@@ -157,12 +160,14 @@ class DataCollect:
     """Worker processes (default: all cores)"""
     tasks: Annotated[TaskSplit, tyro.conf.OmitArgPrefixes] = TaskSplit()
     """Which tasks train and test: counts (--n-train, --n-test) or parameter ranges (--train-range LOW HIGH)."""
+    experts: Literal["conditioned", "per-task"] = "conditioned"
+    """Who collects: the family's task-conditioned SAC, or one SAC per training task (App. C.2; its own collection)."""
 
     def run(self) -> None:
         from bati.data.collect import collect
 
         result = collect(self.family, self.scale, self.seed, self.noise, self.root, zoo_dir=self.zoo_dir,
-                         progress=console.is_terminal, workers=self.workers, tasks=self.tasks)
+                         progress=console.is_terminal, workers=self.workers, tasks=self.tasks, experts=self.experts)
         m = result.manifest
         how = "already collected" if result.cached else f"collected in {result.wall_time_s:.1f} s"
         console.print(
@@ -185,13 +190,15 @@ class DataInfo:
     root: Path = Path("data")
     tasks: Annotated[TaskSplit, tyro.conf.OmitArgPrefixes] = TaskSplit()
     """The collection's task split (as given to `bati data collect`)."""
+    experts: Literal["conditioned", "per-task"] = "conditioned"
+    """Which experts collected it (as given to `bati data collect`)."""
 
     def run(self) -> None:
         from bati.data import store
         from bati.envs import get_family
 
         path, m = store.inspect_collection(self.root, get_family(self.family), self.scale, self.seed, self.noise,
-                                           self.tasks)
+                                           self.tasks, self.experts)
         table = Table(title=f"{path} (commit {m['commit']}, {m['transitions']:,} transitions)")
         for column in ("test task", "task", "p_test collector (most different)",
                        "p_train collector (most similar)"):

@@ -101,6 +101,9 @@ class TrainConfig:
     data_seed: int = 0
     """Seed of the collection to train on (its `bati data collect --seed`)."""
     data_root: Path = Path("data")
+    experts: Literal["conditioned", "per-task"] = "conditioned"
+    """Which experts collected the data: the family's task-conditioned SAC (ours) or one SAC per training task
+    (App. C.2's; `bati experts train --per-task`). Each is its own collection."""
     zoo_dir: Path | None = None
     """Where the family's expert is (default: the package zoo): it collects missing data, gives the expert
     reference return and DPT's labels (`bati experts train` exports into its run directory's zoo/)."""
@@ -445,7 +448,7 @@ NOT_IDENTITY = ("out_dir", "data_root", "log_to", "zoo_dir", "eval_workers", "ev
 # Fields added to TrainConfig after runs were recorded: a saved config without one had this value.
 LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": None, "test_task_range": None,
                 "datasets": [], "task_key": None, "held_out": 0.2, "eval_env": None, "family_version": 1,
-                "zoo_dir": None, "eval_beside_training": False}
+                "zoo_dir": None, "eval_beside_training": False, "experts": "conditioned"}
 # Method hyperparameters added after runs were recorded (in every section whose Config has the field): a
 # saved section without one had this value. (csro.club_negatives is not one: its old value is not its default.)
 LATER_METHOD_FIELDS = {"distance": "squared", "latent_activation": "none"}

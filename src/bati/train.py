@@ -148,7 +148,7 @@ def _check_paths(configs: list[TrainConfig]) -> None:
     if c.datasets:  # a user's own datasets: read, never written
         return
     collection = store.collection_dir(c.data_root, family_of(c.family), c.data_scale, c.data_seed, c.noise,
-                                      c.task_split())
+                                      c.task_split(), c.experts)
     check_directory(c.data_root, "the data root", writable=not (collection / store.MANIFEST).is_file())
 
 
@@ -235,15 +235,15 @@ class RunInputs:
         # training needs the expert (collection, reference returns): none is one line now, not after training;
         # a finished run is opened without it unless its method imitates it (DPT)
         needs_expert = collect or METHODS[config.method].needs_expert_actions
-        expert = load_expert(config.family, config.zoo_dir) if needs_expert else None
+        expert = load_expert(config.family, config.zoo_dir, config.experts) if needs_expert else None
         if collect:
             data = ensure_family_data(family, config.data_scale, config.data_seed, config.noise,
                                       config.data_root, n_episodes=config.episodes_per_task,
                                       n_context_episodes=config.context_episodes, progress=show_progress,
-                                      tasks=config.task_split(), zoo_dir=config.zoo_dir)
+                                      tasks=config.task_split(), zoo_dir=config.zoo_dir, experts=config.experts)
         else:
             data = load_family_data(family, config.data_scale, config.data_seed, config.noise,
-                                    config.data_root, tasks=config.task_split())
+                                    config.data_root, tasks=config.task_split(), experts=config.experts)
         return cls(config, family, data, expert)
 
     def trainer(self) -> Trainer:

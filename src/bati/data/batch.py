@@ -198,6 +198,7 @@ def load_family_data(
     *,
     cache: bool = True,
     tasks: TaskSplit | None = None,
+    experts: str = "conditioned",
 ) -> FamilyData:
     """Read a complete collection (see `bati data collect`) into flat arrays.
 
@@ -208,9 +209,9 @@ def load_family_data(
     family = fam.name
     noise = fam.validate_noise(noise)
     tasks = (tasks or TaskSplit()).checked(fam)
-    path = store.collection_dir(root, fam, scale, seed, noise, tasks)
-    manifest = store.read_manifest(path, fam, scale, seed, noise, root, tasks)
-    redo = store.collect_command(fam, scale, seed, noise, root, tasks)
+    path = store.collection_dir(root, fam, scale, seed, noise, tasks, experts)
+    manifest = store.read_manifest(path, fam, scale, seed, noise, root, tasks, experts)
+    redo = store.collect_command(fam, scale, seed, noise, root, tasks, experts)
     store.require_intact(path, manifest, redo)  # sizes only (a stat per file): a truncated or missing file
     obs_dim, action_dim = store.require_env_dims(path, manifest, fam, noise)
     length = int(manifest.get("episode_length", EPISODE_LENGTH))
@@ -268,14 +269,15 @@ def ensure_family_data(
     cache: bool = True,
     workers: int | None = None,
     tasks: TaskSplit | None = None,
+    experts: str = "conditioned",
 ) -> FamilyData:
     """Collect the data if it is not on disk yet (see `collect`; `workers`: its worker processes,
     default all cores), then load it."""
     from bati.data.collect import collect
 
     collect(family, scale, seed, noise, root, n_episodes=n_episodes, n_context_episodes=n_context_episodes,
-            zoo_dir=zoo_dir, progress=progress, workers=workers, tasks=tasks)
-    return load_family_data(family, scale, seed, noise, root, cache=cache, tasks=tasks)
+            zoo_dir=zoo_dir, progress=progress, workers=workers, tasks=tasks, experts=experts)
+    return load_family_data(family, scale, seed, noise, root, cache=cache, tasks=tasks, experts=experts)
 
 
 def _read_minari(path: Path, manifest: dict, obs_dim: int, action_dim: int, length: int) -> dict:

@@ -2,7 +2,8 @@
 of `bati.data.plan`'s plan (who collects which episode) and write the collection.
 
 "The expert for task M" is the family's task-conditioned SAC conditioned on M's parameters
-(design deviation: one expert per family). Experts act stochastically; every episode is run in
+(design deviation: one expert per family), or with `experts="per-task"` the SAC trained for training
+task M alone (App. C.2; `bati.experts.per_task`). Experts act stochastically; every episode is run in
 the family's env with its default eps (or `noise`). All episodes are stepped in lockstep chunks
 of CHUNK envs (one batched expert call per step); a chunk's episodes depend only on the seed, the
 plan and the chunk's index, so chunks are spread over worker processes (`workers`, default: all
@@ -27,6 +28,7 @@ from bati.data import store
 from bati.data.plan import OTHER_FRACTION, PLAN_STREAM, DatasetPlan, Plan, make_plan
 from bati.envs import FAMILY_NAMES, TaskFamily, TaskSplit, as_family, get_family
 from bati.envs.rollout import ONE_THREAD_ENV, LockstepEnvs
+from bati.experts.zoo import check_kind
 from bati.io import atomic_write_json, check_directory, git_commit, hold_lock
 
 # Episodes per training task and per context dataset. `paper`: the family's own size
@@ -87,6 +89,7 @@ def collect(
     progress: bool = True,
     workers: int | None = None,
     tasks: TaskSplit | None = None,
+    experts: str = "conditioned",
 ) -> CollectResult:
     """Collect (or find cached) the datasets of `family` under `<root>/<Family>/<scale>-seed<S>-eps<eps>`.
 
@@ -95,6 +98,8 @@ def collect(
     roll out the episodes (default: all cores, at most one per chunk of CHUNK episodes); the
     datasets written are the same whatever their number. `tasks` changes which tasks train and test
     (counts, parameter ranges); a non-default split is its own collection (its label in the name).
+    `experts`: "conditioned" (the family's task-conditioned SAC) or "per-task" (one SAC per training task,
+    App. C.2); per-task data is its own collection (`-per-task-experts` in its name).
     """
     start = time.perf_counter()
     workers = check_workers(workers)
@@ -104,12 +109,13 @@ def collect(
     check_supported(fam)
     noise = fam.validate_noise(noise)
     tasks = (tasks or TaskSplit()).checked(fam)
+    check_kind(experts)
     default_n, default_ctx = scale_sizes(fam, scale)
     n_episodes = default_n if n_episodes is None else int(n_episodes)
     n_context_episodes = default_ctx if n_context_episodes is None else int(n_context_episodes)
-    target = store.collection_dir(root, fam, scale, seed, noise, tasks)
+    target = store.collection_dir(root, fam, scale, seed, noise, tasks, experts)
 
-    cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks)
+    cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks, experts)
     if cached is not None:
         return CollectResult(target, cached, True, time.perf_counter() - start)
     check_directory(target.parent, "the data directory")  # a file, or not writable: say so before any work
@@ -120,7 +126,9 @@ def collect(
     if fam.name not in FAMILY_NAMES and not _from_plugin(fam.name):  # spawned workers would not know it
         workers = 1
     load_start = time.perf_counter()
-    expert = load_expert(family, zoo_dir)  # FileNotFoundError naming `bati experts train --family X`
+    expert = load_expert(family, zoo_dir, experts)  # FileNotFoundError naming `bati experts train --family X`
+    if experts == "per-task":
+        expert.check_tasks(plan.train_tasks)  # trained for other tasks: one line, before any episode
     timings = {"expert_load_s": time.perf_counter() - load_start}
     probe = fam.make_env(plan.train_tasks[0], noise)
     obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
@@ -137,7 +145,7 @@ def collect(
     # one writer per collection: a second process fails at once naming the first (its pid, host)
     with hold_lock(store.lock_path(target), f"the collection {target}"):
         store.remove_stale_partials(target)
-        cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks)
+        cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks, experts)
         if cached is not None:  # another process finished the same collection meanwhile
             return CollectResult(target, cached, True, time.perf_counter() - start)
         if target.exists():  # no manifest: an incomplete or foreign directory; start over
@@ -152,7 +160,7 @@ def collect(
             base_meta = {"family": family, "scale": scale, "seed": seed, "noise": noise, "commit": commit,
                          "collection_id": collection_id}
             timings.update(run_collection(fam, plan, expert, noise, seed, tmp, base_meta, progress=progress,
-                                          workers=workers, zoo_dir=zoo_dir))
+                                          workers=workers, zoo_dir=zoo_dir, experts=experts))
             manifest = {
                 "format": store.FORMAT_VERSION,
                 **base_meta,
@@ -171,22 +179,24 @@ def collect(
                 "p_train_most_similar": plan.most_similar,
                 "datasets": {s: [d.name for d in plan.datasets if d.split == s] for s in store.SPLITS},
                 "transitions": plan.n_episodes * fam.record.episode_length,
-                "expert": {"train_steps": expert.meta.get("train_steps"), "seed": expert.meta.get("seed")},
+                "experts": experts,
+                "expert": {"train_steps": expert.meta.get("train_steps", expert.meta.get("train_steps_per_task")),
+                           "seed": expert.meta.get("seed")},
                 "collect_wall_time_s": round(time.perf_counter() - start, 2),
                 "workers": workers,  # how it was made, not what it is: not part of the cache identity
                 "timings_s": {k: round(v, 2) for k, v in timings.items()},
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-                "command": store.collect_command(fam, scale, seed, noise, root, tasks),
+                "command": store.collect_command(fam, scale, seed, noise, root, tasks, experts),
             }
             manifest["settings"] = collection_settings(fam, scale, seed, noise, n_episodes,
-                                                       n_context_episodes, tasks, zoo_dir)
+                                                       n_context_episodes, tasks, zoo_dir, experts)
             manifest["files"] = store.file_checksums(tmp, manifest["datasets"])  # what verify and loads check
             atomic_write_json(tmp / store.MANIFEST, manifest)  # written last
             try:
                 tmp.rename(target)
             except OSError:  # a concurrent collection finished first: keep its (identical) data
                 existing = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes,
-                                   tasks)
+                                   tasks, experts)
                 if existing is None:
                     raise
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -211,13 +221,17 @@ def _naming_collection(err: OSError, target: Path, tmp: Path) -> OSError:
 
 
 def collection_settings(family: TaskFamily, scale: str, seed: int, noise: float, n_episodes: int,
-                        n_context_episodes: int, tasks: TaskSplit, zoo_dir) -> dict:
+                        n_context_episodes: int, tasks: TaskSplit, zoo_dir, experts: str = "conditioned") -> dict:
     """Everything that decides a collection's content, in one place of its manifest: with the same
-    settings (and the same expert, by its sha256) a collection is reproduced file for file."""
+    settings (and the same expert, by its sha256) a collection is reproduced file for file. (Per-task
+    experts add `experts`; a collection by the conditioned expert records none, as before they existed.)"""
+    from bati.experts.per_task import PER_TASK_DIR
     from bati.experts.zoo import ZOO_DIR
 
-    actor = Path(zoo_dir or ZOO_DIR) / family.name / "actor.msgpack"
-    return {"family": family.name, "scale": scale, "seed": seed, "noise": noise, "n_episodes": n_episodes,
+    entry = Path(zoo_dir or ZOO_DIR) / family.name
+    actor = entry / PER_TASK_DIR / "actors.msgpack" if experts == "per-task" else entry / "actor.msgpack"
+    kind = {"experts": experts} if experts != "conditioned" else {}
+    return {**kind, "family": family.name, "scale": scale, "seed": seed, "noise": noise, "n_episodes": n_episodes,
             "n_context_episodes": n_context_episodes, "episode_length": family.record.episode_length, "chunk": CHUNK,
             "other_fraction": OTHER_FRACTION, "task_split": tasks.record(),
             "expert_sha256": store.sha256_file(actor) if actor.is_file() else None}
@@ -226,29 +240,34 @@ def collection_settings(family: TaskFamily, scale: str, seed: int, noise: float,
 _EXPERTS: dict[tuple, Any] = {}
 
 
-def load_expert(family: str, zoo_dir: str | Path | None = None):
+def load_expert(family: str, zoo_dir: str | Path | None = None, experts: str = "conditioned"):
     """`bati.experts.load`, memoised per process while the expert's files are unchanged."""
     from bati.experts import load
+    from bati.experts.per_task import PER_TASK_DIR
     from bati.experts.zoo import ZOO_DIR
 
     directory = Path(zoo_dir or ZOO_DIR) / family
+    files = ("expert.json", "actor.msgpack")
+    if experts == "per-task":
+        directory, files = directory / PER_TASK_DIR, ("expert.json", "actors.msgpack")
     try:
-        stamp = tuple((directory / name).stat().st_mtime_ns for name in ("expert.json", "actor.msgpack"))
+        stamp = tuple((directory / name).stat().st_mtime_ns for name in files)
     except OSError:
-        return load(family, zoo_dir)  # raises the zoo's own error (e.g. no expert for the family)
+        return load(family, zoo_dir, experts)  # raises the zoo's own error (e.g. no expert for the family)
     key = (family, str(directory.resolve()), stamp)
     if key not in _EXPERTS:
         for stale in [k for k in _EXPERTS if k[:2] == key[:2]]:  # the expert was re-exported
             del _EXPERTS[stale]
-        _EXPERTS[key] = load(family, zoo_dir)
+        _EXPERTS[key] = load(family, zoo_dir, experts)
     return _EXPERTS[key]
 
 
-def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks=None) -> dict | None:
+def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks=None,
+            experts="conditioned") -> dict | None:
     """The manifest of a complete collection at `target`, None if there is none."""
     if not (target / store.MANIFEST).is_file():
         return None
-    manifest = store.read_manifest(target, fam, scale, seed, noise, root, tasks)
+    manifest = store.read_manifest(target, fam, scale, seed, noise, root, tasks, experts)
     store.require_env_dims(target, manifest, fam, noise)  # the env changed since: not "already collected"
     sizes = (manifest.get("n_episodes"), manifest.get("n_context_episodes"))
     if sizes != (n_episodes, n_context_episodes):
@@ -284,6 +303,7 @@ class _Chunk:
     tasks: list  # (K,) task of each episode
     reset_seeds: list[int]  # (K,)
     policy_tasks: np.ndarray  # (K, task_dim) task array the collecting expert is conditioned on
+    collectors: np.ndarray  # (K,) index of the training task whose expert collects each episode
 
 
 def _chunks(family: TaskFamily, plan: Plan, chunk_size: int) -> list[_Chunk]:
@@ -295,6 +315,7 @@ def _chunks(family: TaskFamily, plan: Plan, chunk_size: int) -> list[_Chunk]:
             [d.task for d, _ in jobs[first : first + chunk_size]],
             [int(d.reset_seeds[e]) for d, e in jobs[first : first + chunk_size]],
             train_arrays[[int(d.collectors[e]) for d, e in jobs[first : first + chunk_size]]],
+            np.array([int(d.collectors[e]) for d, e in jobs[first : first + chunk_size]], np.int32),
         )
         for index, first in enumerate(range(0, len(jobs), chunk_size))
     ]
@@ -313,6 +334,8 @@ def _rollout_chunk(family: TaskFamily, expert, noise: float, seed: int, chunk: _
     k_envs, length = len(chunk.tasks), family.record.episode_length
     policy_tasks = np.zeros((chunk_size, family.task_dim), np.float32)  # padded: one jit shape
     policy_tasks[:k_envs] = chunk.policy_tasks
+    collectors = np.zeros(chunk_size, np.int32)
+    collectors[:k_envs] = chunk.collectors
     first = envs.reset(chunk.tasks, chunk.reset_seeds)
     obs = np.zeros((k_envs, length + 1, first.shape[-1]))
     obs[:, 0] = first
@@ -325,7 +348,8 @@ def _rollout_chunk(family: TaskFamily, expert, noise: float, seed: int, chunk: _
         padded = np.zeros((chunk_size, obs.shape[-1]), np.float32)
         for t in range(length):
             padded[:k_envs] = obs[:, t]
-            act = np.asarray(expert.act_from_arrays(padded, policy_tasks, False, jax.random.fold_in(chunk_key, t)))
+            act = np.asarray(expert.act_for_collectors(padded, collectors, policy_tasks, False,
+                                                       jax.random.fold_in(chunk_key, t)))
             if actions is None:
                 actions = np.zeros((k_envs, length, act.shape[-1]), np.float32)
             actions[:, t] = act[:k_envs]
@@ -345,21 +369,23 @@ _WORKER_THREAD_ENV = {
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(family_name: str, zoo_dir: str | None, noise: float, seed: int, chunk_size: int) -> None:
+def _worker_init(family_name: str, zoo_dir: str | None, noise: float, seed: int, chunk_size: int,
+                 experts: str = "conditioned") -> None:
     """Per worker process, once: one thread (so N workers use N cores), CPU only, the settings."""
     for name, value in _WORKER_THREAD_ENV.items():
         if name == "XLA_FLAGS":
             value = " ".join(filter(None, [os.environ.get(name, ""), value]))
         os.environ[name] = value  # before jax is first imported (this module does not import it)
     os.environ["JAX_PLATFORMS"] = "cpu"  # N processes must not share (or grab) one accelerator
-    _WORKER.update(family_name=family_name, zoo_dir=zoo_dir, noise=noise, seed=seed, chunk_size=chunk_size)
+    _WORKER.update(family_name=family_name, zoo_dir=zoo_dir, noise=noise, seed=seed, chunk_size=chunk_size,
+                   experts=experts)
 
 
 def _worker_rollout(chunk: _Chunk) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
     w = _WORKER
     if "expert" not in w:  # loaded here, not in the initializer: its errors reach the caller intact
         w["family"] = get_family(w["family_name"])
-        w["expert"] = load_expert(w["family_name"], w["zoo_dir"])
+        w["expert"] = load_expert(w["family_name"], w["zoo_dir"], w["experts"])
         w["envs"] = LockstepEnvs(w["family"], w["noise"])
     return (chunk.index, *_rollout_chunk(w["family"], w["expert"], w["noise"], w["seed"], chunk,
                                          w["chunk_size"], w["envs"]))
@@ -377,6 +403,7 @@ def run_collection(
     *,
     workers: int = 1,
     zoo_dir: str | Path | None = None,
+    experts: str = "conditioned",
 ) -> dict[str, float]:
     """Roll out every planned episode (lockstep chunks of CHUNK envs) and write the datasets.
 
@@ -419,14 +446,15 @@ def run_collection(
                                             on_step=lambda n: bar.advance(task_id, n))
                     consume(chunk, *arrays)
         else:
-            _run_parallel(family, chunks, chunk_size, noise, seed, workers, zoo_dir, consume,
+            _run_parallel(family, chunks, chunk_size, noise, seed, workers, (zoo_dir, experts), consume,
                           lambda n: bar.advance(task_id, n * family.record.episode_length))
     return {"rollout_s": time.perf_counter() - start - write_s, "write_s": write_s}
 
 
 def _run_parallel(family: TaskFamily, chunks: list[_Chunk], chunk_size: int, noise: float, seed: int,
-                  workers: int, zoo_dir, consume, advance) -> None:
-    """Roll out `chunks` in `workers` spawned processes; `consume` them in order as they finish."""
+                  workers: int, expert_source, consume, advance) -> None:
+    """Roll out `chunks` in `workers` spawned processes; `consume` them in order as they finish.
+    `expert_source`: (zoo_dir, experts), where each worker loads the experts from."""
     from concurrent.futures import FIRST_COMPLETED, wait
 
     from bati.processes import spawned_pool
@@ -435,7 +463,8 @@ def _run_parallel(family: TaskFamily, chunks: list[_Chunk], chunk_size: int, noi
     pending: dict = {}  # future -> chunk index
     done: dict[int, tuple] = {}  # finished chunks waiting for an earlier one
     next_submit = next_consume = 0
-    initargs = (family.name, None if zoo_dir is None else str(zoo_dir), noise, seed, chunk_size)
+    zoo_dir, experts = expert_source
+    initargs = (family.name, None if zoo_dir is None else str(zoo_dir), noise, seed, chunk_size, experts)
     with spawned_pool(workers, _worker_init, initargs) as executor:
         while next_consume < len(chunks):
             while next_submit < len(chunks) and next_submit < next_consume + window:

@@ -60,11 +60,12 @@ def collection_name(scale: str, seed: int, noise: float) -> str:
 
 
 def collection_dir(root: str | Path, family: TaskFamily, scale: str, seed: int, noise: float,
-                   tasks: TaskSplit | None = None) -> Path:
+                   tasks: TaskSplit | None = None, experts: str = "conditioned") -> Path:
     """`<root>/<Family>/<scale>-seed<S>-eps<eps>[<split>][-v<version>]` (noise already validated / defaulted);
     a non-default task split adds its label, e.g. `-tasks10x30` or `-train0to3.14159-test3.14159to6.28319`,
-    and an env version after the first its number (so the data of an earlier version stays where it was)."""
-    label = "" if tasks is None else tasks.label()
+    and an env version after the first its number (so the data of an earlier version stays where it was);
+    data collected by per-task experts (App. C.2) ends in `-per-task-experts`."""
+    label = ("" if tasks is None else tasks.label()) + ("-per-task-experts" if experts == "per-task" else "")
     version = family.record.version
     return Path(root) / family.name / (collection_name(scale, seed, noise) + label + (f"-v{version}" if version > 1 else ""))
 
@@ -75,7 +76,7 @@ def dataset_name(split: str, index: int) -> str:
 
 
 def collect_command(family: TaskFamily, scale: str, seed: int, noise: float, root: str | Path,
-                    tasks: TaskSplit | None = None) -> str:
+                    tasks: TaskSplit | None = None, experts: str = "conditioned") -> str:
     """The exact `bati data collect ...` command that builds this collection."""
     command = f"bati data collect --family {family.name} --scale {scale} --seed {seed}"
     if noise != family.default_noise:
@@ -86,6 +87,8 @@ def collect_command(family: TaskFamily, scale: str, seed: int, noise: float, roo
     for side, task_range in (("train", tasks.train_range), ("test", tasks.test_range)):
         if task_range is not None:
             command += f" --{side}-range {task_range[0]:.17g} {task_range[1]:.17g}"
+    if experts != "conditioned":
+        command += f" --experts {experts}"
     if Path(root) != DEFAULT_ROOT:
         command += f" --root {root}"
     return command
@@ -93,29 +96,30 @@ def collect_command(family: TaskFamily, scale: str, seed: int, noise: float, roo
 
 # --- manifest ----------------------------------------------------------------------------------
 def read_manifest(path: Path, family: TaskFamily, scale: str, seed: int, noise: float, root,
-                  tasks: TaskSplit | None = None) -> dict:
+                  tasks: TaskSplit | None = None, experts: str = "conditioned") -> dict:
     """The manifest of a complete collection, or DatasetNotFoundError / DatasetError."""
     tasks = tasks or TaskSplit()
+    redo_command = collect_command(family, scale, seed, noise, root, tasks, experts)
     manifest_path = path / MANIFEST
     if not manifest_path.is_file():
         raise DatasetNotFoundError(
             f"no {family.name} data at {path} (scale={scale}, seed={seed}, eps={noise:g}); "
-            f"collect it with `{collect_command(family, scale, seed, noise, root, tasks)}`"
+            f"collect it with `{redo_command}`"
         )
     try:
         manifest = json.loads(manifest_path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise DatasetError(f"{manifest_path} is corrupted ({err}); delete {path} and re-run "
-                           f"`{collect_command(family, scale, seed, noise, root, tasks)}`") from err
-    redo = f"delete {path} and re-run `{collect_command(family, scale, seed, noise, root, tasks)}`"
+                           f"`{redo_command}`") from err
+    redo = f"delete {path} and re-run `{redo_command}`"
     if not isinstance(manifest, dict):
         raise DatasetError(f"{manifest_path} holds a JSON {type(manifest).__name__}, not a manifest; {redo}")
     if manifest.get("format") not in READABLE_FORMATS:
         raise DatasetError(f"{manifest_path}: format is {manifest.get('format')!r}, this bati reads "
                            f"{' or '.join(map(str, READABLE_FORMATS))}; {redo}")
-    expected = {"family": family.name, "scale": scale, "seed": seed, "noise": noise}
+    expected = {"family": family.name, "scale": scale, "seed": seed, "noise": noise, "experts": experts}
     for key, value in expected.items():
-        if manifest.get(key) != value:
+        if manifest.get(key, "conditioned" if key == "experts" else None) != value:
             raise DatasetError(f"{manifest_path}: {key} is {manifest.get(key)!r}, expected {value!r}; {redo}")
     missing = [key for key in REQUIRED_KEYS if key not in manifest]
     if missing:
@@ -253,14 +257,14 @@ def verify_collection(path: Path) -> tuple[str, list[str]]:
 
 
 def inspect_collection(root: str | Path, family: TaskFamily, scale: str, seed: int, noise: float | None,
-                       tasks: TaskSplit) -> tuple[Path, dict]:
+                       tasks: TaskSplit, experts: str = "conditioned") -> tuple[Path, dict]:
     """`bati data info`: the directory and manifest of a complete collection whose files all have their
     recorded sizes (cheap; `verify_collections` reads every byte); DatasetNotFoundError / DatasetError."""
     noise = family.validate_noise(noise)
     tasks = tasks.checked(family)
-    path = collection_dir(root, family, scale, seed, noise, tasks)
-    manifest = read_manifest(path, family, scale, seed, noise, root, tasks)
-    require_intact(path, manifest, collect_command(family, scale, seed, noise, root, tasks))
+    path = collection_dir(root, family, scale, seed, noise, tasks, experts)
+    manifest = read_manifest(path, family, scale, seed, noise, root, tasks, experts)
+    require_intact(path, manifest, collect_command(family, scale, seed, noise, root, tasks, experts))
     return path, manifest
 
 

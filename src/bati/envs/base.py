@@ -71,6 +71,9 @@ class FamilyRecord:
     """Episodes per training task at the paper scale (Table 3's "Dataset Size", read per task)."""
     expert_steps: int | None = None
     """Environment transitions for its SAC expert (None: the family's expert is not a SAC)."""
+    per_task_expert_steps: int | None = None
+    """Environment transitions per task for its per-task SAC experts (App. C.2's one SAC per training
+    task: `bati experts train --per-task`); None: the family has none."""
     unicorn_weight: float = 0.15
     """Table 3: UNICORN's weight of the FOCAL term."""
     club_weight: float = 1.0

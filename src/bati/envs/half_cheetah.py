@@ -50,6 +50,7 @@ class HalfCheetahDirFamily(TaskFamily):
         max_noise=1.0,
         paper_episodes=1000,  # Table 3: 2e5 transitions per task
         expert_steps=200_000,
+        per_task_expert_steps=60_000,
         entropy_weight=2.5,  # ours: ER-TRL has no cheetah-dir setting; its cheetah-vel one
     )
 

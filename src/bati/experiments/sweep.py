@@ -234,7 +234,8 @@ def collection_key(config: TrainConfig) -> str:
     the expert (zoo); jobs with the same key share them (computed by the first, passed to the others)."""
     return json.dumps([config.family, config.data_scale, config.data_seed, config.noise, str(config.data_root),
                        config.episodes_per_task, config.context_episodes, str(config.task_split()),
-                       str(config.zoo_dir), config.record().get("family_version"), bool(config.datasets)])
+                       str(config.zoo_dir), config.record().get("family_version"), bool(config.datasets)]
+                      + ([config.experts] if config.experts != "conditioned" else []))
 
 
 def check_experts(cells: list[Cell]) -> None:
@@ -242,9 +243,9 @@ def check_experts(cells: list[Cell]) -> None:
     is the zoo's one-line error before anything is written."""
     from bati.data.collect import load_expert
 
-    for family, zoo_dir in sorted({(c.config.family, c.config.zoo_dir) for c in cells if not c.config.datasets},
-                                  key=str):
-        load_expert(family, zoo_dir)
+    for family, zoo_dir, experts in sorted({(c.config.family, c.config.zoo_dir, c.config.experts)
+                                            for c in cells if not c.config.datasets}, key=str):
+        load_expert(family, zoo_dir, experts)
 
 
 def prepare_data(cells: list[Cell], progress: bool) -> None:
@@ -253,10 +254,11 @@ def prepare_data(cells: list[Cell], progress: bool) -> None:
     from bati.data.collect import collect
 
     needed = {(c.family, c.data_scale, c.data_seed, c.noise, str(c.data_root), c.episodes_per_task, c.context_episodes,
-               c.task_split(), None if c.zoo_dir is None else str(c.zoo_dir)) for c in (cell.config for cell in cells)}
-    for family, scale, seed, noise, root, n_episodes, n_context, tasks, zoo_dir in sorted(needed, key=str):
+               c.task_split(), None if c.zoo_dir is None else str(c.zoo_dir), c.experts)
+              for c in (cell.config for cell in cells)}
+    for family, scale, seed, noise, root, n_episodes, n_context, tasks, zoo_dir, experts in sorted(needed, key=str):
         collect(family, scale, seed, noise, root, n_episodes=n_episodes, n_context_episodes=n_context,
-                progress=progress, tasks=tasks, zoo_dir=zoo_dir)
+                progress=progress, tasks=tasks, zoo_dir=zoo_dir, experts=experts)
 
 
 # --- the sweep -------------------------------------------------------------------------------

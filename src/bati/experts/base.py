@@ -43,5 +43,12 @@ class Expert:
     def act_from_arrays(self, obs: np.ndarray, task_arrays: np.ndarray, deterministic: bool, key) -> np.ndarray:
         raise NotImplementedError
 
+    def act_for_collectors(self, obs: np.ndarray, collectors: np.ndarray, task_arrays: np.ndarray,
+                           deterministic: bool, key) -> np.ndarray:
+        """Actions of the experts of the training tasks `collectors` (one index per row; `task_arrays`:
+        those tasks' arrays), as a collection plan names them. One expert per family: conditioned on the
+        task's array; per-task experts (App. C.2) run expert `collectors[k]` itself."""
+        return self.act_from_arrays(obs, task_arrays, deterministic, key)
+
     def mean_action(self, obs: jax.Array, task_arrays: jax.Array) -> jax.Array:
         raise NotImplementedError

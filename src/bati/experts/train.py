@@ -52,6 +52,15 @@ class ExpertTrainConfig:
     into_package: bool = False
     """Export into the package's own zoo instead (src/bati/experts/zoo: the expert every later collection
     of this family uses, replacing the shipped one)."""
+    per_task: bool = False
+    """Train one SAC per training task (App. C.2: the 20 training tasks of data seed 0), all as one vmapped
+    program (bati.experts.per_task); `total_steps` is then per task (default: FamilyRecord.per_task_expert_steps)."""
+    tasks: tuple[int, ...] | None = None
+    """With --per-task: train only these training tasks' experts (indices; default all). Each gets the
+    parameters the full program gives it."""
+    update_every: int = 50
+    """With --per-task: environment steps per task between update calls (each applies
+    update_every * updates_per_step updates to every task)."""
     sac: SACConfig = field(default_factory=SACConfig)
 
     def resolved(self) -> ExpertTrainConfig:
@@ -59,8 +68,9 @@ class ExpertTrainConfig:
         if record.expert_steps is None:
             raise ValueError(f"{self.family}'s expert is not a SAC (KuhnPoker: the exact best response, "
                              "bati.experts.kuhn, computed when needed): there is no SAC expert to train")
-        for name in ("total_steps", "num_envs", "checkpoint_every", "eval_every", "eval_tasks"):
-            hint = f" (leave it out for the family's {record.expert_steps:,})" if name == "total_steps" else ""
+        budget = record.per_task_expert_steps if self.per_task else record.expert_steps
+        for name in ("total_steps", "num_envs", "checkpoint_every", "eval_every", "eval_tasks", "update_every"):
+            hint = f" (leave it out for the family's {budget:,})" if name == "total_steps" and budget else ""
             if getattr(self, name) is not None:  # None: the default; 0 is refused, never the default
                 check_integer(name, getattr(self, name), hint=hint)
         for name in ("start_steps", "seed"):
@@ -69,9 +79,22 @@ class ExpertTrainConfig:
         self.sac.check()
         if self.into_package and self.export_dir is not None:
             raise ValueError("give either --export-dir or --into-package, not both")
-        out = self.out_dir or Path("runs/experts") / self.family
+        out = self.out_dir or Path("runs/experts") / (f"{self.family}-per-task" if self.per_task else self.family)
         export = _default_zoo() if self.into_package else self.export_dir or out / "zoo"
-        total = record.expert_steps if self.total_steps is None else self.total_steps
+        if self.tasks is not None and not self.per_task:
+            raise ValueError("--tasks picks per-task experts: give it with --per-task")
+        if self.tasks is not None:
+            n = len(get_family(self.family).split_tasks(0)[0])
+            if not self.tasks or len(set(self.tasks)) != len(self.tasks) or not all(
+                    isinstance(i, int) and 0 <= i < n for i in self.tasks):
+                raise ValueError(f"tasks={list(self.tasks)}: give distinct training-task indices in 0..{n - 1}")
+        if budget is None and self.total_steps is None:
+            raise ValueError(f"{self.family} has no per-task expert budget (FamilyRecord.per_task_expert_steps): "
+                             "give --total-steps")
+        total = budget if self.total_steps is None else self.total_steps
+        if total <= self.start_steps:
+            raise ValueError(f"total_steps ({total:,}) must exceed start_steps ({self.start_steps:,}): SAC would never "
+                             "update and the exported expert would be untrained")
         return ExpertTrainConfig(**{**asdict(self), "total_steps": total, "out_dir": out, "export_dir": export,
                                     "sac": self.sac})
 
@@ -107,7 +130,12 @@ class ReplayBuffer:
 
 
 def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
-    """Train (or resume) the expert of `config.family`; returns the run directory."""
+    """Train (or resume) the expert of `config.family` (or, with `per_task`, its per-task experts);
+    returns the run directory."""
+    if config.per_task:
+        from bati.experts.per_task import train_per_task_experts
+
+        return train_per_task_experts(config, show_progress)
     config = config.resolved()
     family = get_family(config.family)
     out: Path = config.out_dir

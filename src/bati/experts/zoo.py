@@ -16,6 +16,15 @@ from bati.experts.base import Expert
 from bati.io import atomic_write_bytes, atomic_write_json
 
 ZOO_DIR = Path(__file__).parent / "zoo"
+EXPERT_KINDS = ("conditioned", "per-task")
+"""Which experts collect a family's data: one task-conditioned SAC (ours, the default) or one SAC per
+training task (the paper's, App. C.2)."""
+
+
+def check_kind(kind: str) -> str:
+    if kind not in EXPERT_KINDS:
+        raise ValueError(f"experts={kind!r}: choose one of {', '.join(EXPERT_KINDS)}")
+    return kind
 
 
 class ExpertPolicy(Expert):
@@ -60,14 +69,22 @@ def register_expert(family_name: str, factory: Callable[[], Expert]) -> None:
     _EXPERT_FACTORIES[family_name] = factory
 
 
-def load(family_name: str, zoo_dir: str | Path | None = None) -> Expert:
+def load(family_name: str, zoo_dir: str | Path | None = None, kind: str = "conditioned") -> Expert:
     """The shipped (or `zoo_dir`'s) expert of a family, or the one `register_expert` gave it
-    (KuhnPoker: exact best responses, nothing shipped)."""
+    (KuhnPoker: exact best responses, nothing shipped). `kind`: "conditioned" (one task-conditioned SAC)
+    or "per-task" (one SAC per training task, App. C.2: `bati.experts.per_task`)."""
     from bati.experts.sac import SAC, SACConfig
 
+    check_kind(kind)
     directory = Path(zoo_dir or ZOO_DIR) / family_name
     meta_path = directory / "expert.json"
     get_family(family_name)  # unknown family -> TaskError
+    if kind == "per-task":
+        from bati.experts.per_task import PER_TASK_DIR, load_per_task
+
+        if family_name in _EXPERT_FACTORIES:
+            raise ValueError(f"{family_name}'s expert is computed or scripted, not trained per task: use --experts conditioned")
+        return load_per_task(family_name, directory / PER_TASK_DIR)
     if family_name in _EXPERT_FACTORIES:  # computed or scripted: nothing to load
         return _EXPERT_FACTORIES[family_name]()
     if not meta_path.exists():

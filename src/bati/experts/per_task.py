@@ -1,0 +1,295 @@
+"""One SAC expert per training task (App. C.2), all of a family's training tasks trained as one program.
+
+Task i of `split_tasks(seed=0)`'s training tasks has its own env (fixed to task i, eps = 0), replay
+buffer, networks, optimiser states, jax key and numpy generator. Each iteration steps the n envs
+once (one lockstep call) and, every `update_every` steps, applies `update_every * updates_per_step`
+SAC updates to every task in one jitted call: `SAC.update_many` vmapped over the task axis. A task's
+random streams depend only on (seed, its index), so training a subset of the tasks (`tasks`) gives
+each of them the parameters the full program gives it (tested).
+
+The actors read the observation only (task_dim 0: expert i is "the expert of task i", not a policy
+conditioned on a task). Exported as one stacked actor file per family (`<zoo>/<Family>/per-task/`).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import flax
+import jax
+import jax.numpy as jnp
+import numpy as np
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from bati.envs import TaskFamily, get_family
+from bati.envs.rollout import LockstepEnvs, rollout
+from bati.experts.base import Expert
+from bati.experts.sac import SAC, SACConfig
+from bati.io import append_jsonl, atomic_save_npz, atomic_write_bytes, atomic_write_json, check_directory, \
+    check_run_config
+
+PER_TASK_DIR = "per-task"
+"""Sub-directory of a family's zoo entry that holds its per-task experts."""
+SPLIT_SEED = 0
+"""The data seed whose training tasks get experts (the collections' default `--seed`)."""
+FIELDS = ("observations", "actions", "rewards", "next_observations")
+
+
+def training_tasks(family: TaskFamily, seed: int = SPLIT_SEED) -> list:
+    return family.split_tasks(seed)[0]
+
+
+class TaskBuffers:
+    """One replay buffer per task, as (n_tasks, capacity, ...) arrays filled in lockstep."""
+
+    def __init__(self, n_tasks: int, capacity: int, obs_dim: int, action_dim: int):
+        dims = {"observations": obs_dim, "actions": action_dim, "rewards": None, "next_observations": obs_dim}
+        self.data = {k: np.zeros((n_tasks, capacity) + (() if d is None else (d,)), np.float32) for k, d in dims.items()}
+        self.size = 0
+
+    def add(self, **step: np.ndarray) -> None:
+        for k in FIELDS:
+            self.data[k][:, self.size] = step[k]
+        self.size += 1
+
+    def sample(self, rngs: list[np.random.Generator], num_batches: int, batch_size: int) -> dict[str, np.ndarray]:
+        """(n_tasks, num_batches, batch_size, ...): each task's batches from its own buffer and generator."""
+        idx = np.stack([rng.integers(0, self.size, size=(num_batches, batch_size)) for rng in rngs])
+        rows = np.arange(len(rngs))[:, None, None]
+        batch = {k: v[rows, idx] for k, v in self.data.items()}
+        # SAC reads a task array beside each observation: per-task experts have none
+        batch["tasks"] = np.zeros(idx.shape + (0,), np.float32)
+        return batch
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {k: v[:, : self.size] for k, v in self.data.items()}
+
+    def restore(self, arrays) -> None:
+        self.size = arrays["rewards"].shape[1]
+        for k in FIELDS:
+            self.data[k][:, : self.size] = arrays[k]
+
+
+class PerTaskSAC:
+    """SAC's networks and update over a leading task axis of states, batches and keys.
+
+    The update maps `SAC.update_many` over the tasks inside one jitted call (`lax.map`: the same
+    program for every task, so a task's numbers do not depend on which others train beside it;
+    vmapping the update instead hangs XLA's CPU runtime from 3 tasks on, jax 0.10)."""
+
+    def __init__(self, obs_dim: int, action_dim: int, config):
+        self.sac = SAC(obs_dim, 0, action_dim, config)
+        self.init = jax.jit(lambda keys: jax.lax.map(self.sac.init, keys))
+        self.update = jax.jit(lambda states, batches, keys: jax.lax.map(
+            lambda args: self.sac._update_many(*args), (states, batches, keys)))
+        self._act = jax.jit(jax.vmap(self._act_one, in_axes=(0, 0, 0, None)), static_argnames="deterministic")
+
+    def _act_one(self, actor, obs, key, deterministic: bool):
+        return self.sac._act(actor, obs[None], jnp.zeros((1, 0)), key, deterministic=deterministic)[0]
+
+    def act(self, actors, obs: np.ndarray, keys: jax.Array, deterministic: bool) -> np.ndarray:
+        """(n_tasks, action_dim): expert i's action on obs[i]."""
+        return np.asarray(self._act(actors, jnp.asarray(obs, jnp.float32), keys, deterministic))
+
+
+def task_keys(seed: int, indices) -> jax.Array:
+    """Each task's own key: fold_in(PRNGKey(seed), task index)."""
+    return jnp.stack([jax.random.fold_in(jax.random.PRNGKey(seed), int(i)) for i in indices])
+
+
+def train_per_task_experts(config, show_progress: bool = True) -> Path:
+    """Train (or resume) the per-task experts of `config.family` (an ExpertTrainConfig with per_task);
+    returns the run directory."""
+    from bati.experts.train import RESUME_IDENTITY
+
+    config = config.resolved()
+    family = get_family(config.family)
+    out: Path = config.out_dir
+    check_directory(out, "the experts' run directory")
+    check_directory(config.export_dir / config.family / PER_TASK_DIR, "the zoo directory")
+    all_tasks = training_tasks(family)
+    indices = list(range(len(all_tasks))) if config.tasks is None else list(config.tasks)
+    tasks = [all_tasks[i] for i in indices]
+    probe = family.make_env(tasks[0], noise=0.0)
+    obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
+    probe.close()
+    learner = PerTaskSAC(obs_dim, action_dim, config.sac)
+    updates_per_call = max(1, int(round(config.update_every * config.updates_per_step)))
+
+    keys = task_keys(config.seed, indices)
+    split = jax.vmap(jax.random.split)(keys)  # (n, 2, 2): the init key, the running key
+    state, keys = learner.init(split[:, 0]), split[:, 1]
+    rngs = [np.random.default_rng([config.seed, i]) for i in indices]
+    buffers = TaskBuffers(len(tasks), config.total_steps, obs_dim, action_dim)
+    episode, wall_time = 0, 0.0
+    check_run_config(out / "config.json", json.loads(json.dumps(asdict(config), default=str)),
+                     RESUME_IDENTITY + ("per_task", "tasks", "update_every"))
+    if (out / "checkpoint.npz").exists():
+        state, keys, rngs, episode, wall_time = _load_checkpoint(out, buffers, state)
+
+    length = family.record.episode_length
+    progress = Progress(
+        TextColumn(f"[bold]{config.family} per-task experts ({len(tasks)})"), BarColumn(),
+        TextColumn("{task.completed:,}/{task.total:,} steps per task"), TextColumn("{task.fields[status]}"),
+        TimeElapsedColumn(), TimeRemainingColumn(), disable=not show_progress)
+    start = time.perf_counter() - wall_time
+    envs = LockstepEnvs(family, noise=0.0)
+    metrics, returns = {}, None
+    with progress, envs:
+        bar = progress.add_task("train", total=config.total_steps, completed=buffers.size, status="")
+        while buffers.size < config.total_steps:
+            obs = envs.reset(tasks, [config.seed * 1_000_003 + i * 100_003 + episode for i in indices])
+            for _ in range(length):
+                if buffers.size < config.start_steps:
+                    actions = np.stack([rng.uniform(-1.0, 1.0, action_dim) for rng in rngs]).astype(np.float32)
+                else:
+                    split = jax.vmap(jax.random.split)(keys)
+                    keys, actions = split[:, 0], learner.act(state.actor.params, obs, split[:, 1], deterministic=False)
+                step = envs.step(actions)
+                buffers.add(observations=obs, actions=actions, rewards=step.rewards, next_observations=step.observations)
+                obs = step.observations
+                if buffers.size >= config.start_steps and buffers.size % config.update_every == 0:
+                    batches = buffers.sample(rngs, updates_per_call, config.sac.batch_size)
+                    split = jax.vmap(jax.random.split)(keys)
+                    keys = split[:, 0]
+                    state, metrics = learner.update(state, batches, split[:, 1])
+            episode += 1
+            steps = buffers.size
+            progress.update(bar, completed=min(steps, config.total_steps))
+            crossed = lambda every: steps // every > (steps - length) // every  # noqa: E731
+            if crossed(config.eval_every) or steps >= config.total_steps:
+                returns = evaluate_per_task(learner, state.actor.params, family, tasks)
+                append_jsonl(out / "metrics.jsonl", {
+                    "steps": steps, "episode": episode, "wall_time": time.perf_counter() - start,
+                    **{k: float(np.mean(v)) for k, v in metrics.items()},
+                    "eval_return": float(returns.mean()), "eval_returns": [round(float(r), 2) for r in returns]})
+                progress.update(bar, status=f"eval return {returns.mean():.1f} (min {returns.min():.1f})")
+            if crossed(config.checkpoint_every) or steps >= config.total_steps:
+                _save_checkpoint(out, state, keys, rngs, episode, buffers, time.perf_counter() - start)
+
+    meta = {"kind": "per-task", "obs_dim": obs_dim, "task_dim": family.task_dim, "action_dim": action_dim,
+            "family_version": family.record.version, "hidden_dims": list(config.sac.hidden_dims),
+            "split_seed": SPLIT_SEED, "task_indices": indices, "tasks": [family.task_to_array(t).tolist() for t in tasks],
+            "train_steps_per_task": buffers.size, "seed": config.seed,
+            "train_wall_time_s": round(time.perf_counter() - start, 1),
+            "final_eval_returns": None if returns is None else [round(float(r), 2) for r in returns]}
+    save_per_task_experts(config.export_dir / config.family / PER_TASK_DIR, config.family, state.actor.params, meta)
+    return out
+
+
+def evaluate_per_task(learner: PerTaskSAC, actors, family: TaskFamily, tasks: list, seed: int = 12345) -> np.ndarray:
+    """Each expert's deterministic return (eps = 0) on its own task: (n_tasks,)."""
+    keys = jnp.zeros((len(tasks), 2), jnp.uint32)
+    episodes = rollout(family, tasks, lambda o, _: learner.act(actors, o, keys, deterministic=True), noise=0.0, seed=seed)
+    return np.asarray(episodes.returns)
+
+
+def save_per_task_experts(directory: Path, family_name: str, actors, meta: dict) -> None:
+    atomic_write_bytes(directory / "actors.msgpack", flax.serialization.to_bytes(actors))
+    atomic_write_json(directory / "expert.json", {"family": family_name, **meta})
+
+
+def _save_checkpoint(out: Path, state, keys, rngs, episode: int, buffers: TaskBuffers, wall_time: float) -> None:
+    """One file holds the whole training state, so a crash can't leave a mixed checkpoint."""
+    meta = {"episode": episode, "keys": np.asarray(keys).tolist(), "rngs": [r.bit_generator.state for r in rngs],
+            "wall_time": wall_time}
+    atomic_save_npz(out / "checkpoint.npz", **buffers.state(),
+                    state=np.frombuffer(flax.serialization.to_bytes(state), np.uint8), meta=np.array(json.dumps(meta)))
+
+
+def _load_checkpoint(out: Path, buffers: TaskBuffers, template):
+    with np.load(out / "checkpoint.npz") as arrays:
+        buffers.restore(arrays)
+        state = flax.serialization.from_bytes(template, arrays["state"].tobytes())
+        meta = json.loads(str(arrays["meta"]))
+    rngs = []
+    for saved in meta["rngs"]:
+        rng = np.random.default_rng()
+        rng.bit_generator.state = saved
+        rngs.append(rng)
+    keys = jnp.asarray(np.asarray(meta["keys"], dtype=np.uint32))
+    return state, keys, rngs, meta["episode"], meta["wall_time"]
+
+
+class PerTaskExperts(Expert):
+    """A family's per-task experts as one `Expert`: "the expert of training task i" is actor i.
+
+    `act_for_collectors` runs the actors the collection plan names (Eq. 9 / 10: a training task's own
+    expert, another training task's, the most similar or most different one's). Asked for the expert of
+    any task (`policy(obs, task)`, the Oracle reference of a test task), it acts as the expert of the most
+    similar training task: the nearest task array (every family's arrays keep its task distance's order),
+    the first on ties (HalfCheetahDir's repeated directions), as App. C.2 picks a test task's collector.
+    """
+
+    def __init__(self, family_name: str, actors, meta: dict):
+        self.family = get_family(family_name)
+        self.meta = meta
+        self.actors = actors  # stacked: a leading axis of n_tasks
+        self.train_task_arrays = np.asarray(meta["tasks"], np.float32)  # (n_tasks, task_dim)
+        self._sac = SAC(meta["obs_dim"], 0, meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
+        self._heads = jax.jit(self._all_heads)
+        self._act = jax.jit(self._act_rows, static_argnames="deterministic")
+
+    def _all_heads(self, actors, obs):
+        """(n_tasks, K, action_dim) means and log-stds of every actor on every row (a map over actors:
+        vmapping them hangs XLA's CPU runtime, see PerTaskSAC)."""
+        return jax.lax.map(lambda actor: self._sac.actor_net.apply(actor, obs), actors)
+
+    def _act_rows(self, actors, obs, collectors, key, deterministic: bool):
+        means, log_stds = self._heads(actors, obs)
+        rows = jnp.arange(obs.shape[0])
+        mean, log_std = means[collectors, rows], log_stds[collectors, rows]
+        if deterministic:
+            return jnp.tanh(mean)
+        return jnp.tanh(mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape))
+
+    def nearest(self, task_arrays) -> jax.Array:
+        """Index of the most similar training task of each row (first on ties)."""
+        gaps = jnp.sum((jnp.asarray(task_arrays)[:, None, :] - self.train_task_arrays[None]) ** 2, axis=-1)
+        return jnp.argmin(gaps, axis=1)
+
+    def act_for_collectors(self, obs, collectors, task_arrays, deterministic: bool, key) -> np.ndarray:
+        obs = jnp.asarray(obs, jnp.float32)
+        rows = jnp.atleast_2d(obs)
+        actions = self._act(self.actors, rows, jnp.atleast_1d(jnp.asarray(collectors)), key, deterministic)
+        return np.asarray(actions if obs.ndim == 2 else actions[0])
+
+    def act_from_arrays(self, obs, task_arrays, deterministic: bool, key) -> np.ndarray:
+        return self.act_for_collectors(obs, self.nearest(np.atleast_2d(task_arrays)), task_arrays, deterministic, key)
+
+    def mean_action(self, obs: jax.Array, task_arrays: jax.Array) -> jax.Array:
+        return self._act(self.actors, obs, self.nearest(task_arrays), jax.random.PRNGKey(0), True)
+
+    def check_tasks(self, train_tasks: list) -> None:
+        """ValueError unless these experts were trained for exactly `train_tasks` (a collection's)."""
+        arrays = np.stack([self.family.task_to_array(t) for t in train_tasks])
+        if arrays.shape != self.train_task_arrays.shape or not np.allclose(arrays, self.train_task_arrays, atol=1e-6):
+            raise ValueError(f"the {self.family.name} per-task experts were trained for the {len(self.train_task_arrays)} "
+                             f"training tasks of data seed {self.meta.get('split_seed', SPLIT_SEED)}; this collection's "
+                             "training tasks differ (another --seed or task split): use --experts conditioned")
+
+
+def load_per_task(family_name: str, directory: Path) -> PerTaskExperts:
+    """The per-task experts in `directory` (`<zoo>/<Family>/per-task`)."""
+    meta_path = directory / "expert.json"
+    if not meta_path.is_file():
+        raise FileNotFoundError(
+            f"no per-task experts for {family_name} in {directory}; train them with `bati experts train --family "
+            f"{family_name} --per-task` (exported to runs/experts/{family_name}-per-task/zoo: pass that as --zoo-dir)")
+    meta = json.loads(meta_path.read_text())
+    family = get_family(family_name)
+    if meta.get("family") != family_name or meta.get("kind") != "per-task":
+        raise ValueError(f"{meta_path} holds {meta.get('kind', 'conditioned')} experts of {meta.get('family')!r}, "
+                         f"not per-task experts of {family_name!r}")
+    if meta.get("family_version", 1) != family.record.version:
+        raise ValueError(f"{meta_path} holds experts for {family_name}'s env version {meta.get('family_version', 1)}, "
+                         f"not the current version {family.record.version}; retrain them with `bati experts train "
+                         f"--family {family_name} --per-task`")
+    sac = SAC(meta["obs_dim"], 0, meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
+    n = len(meta["tasks"])
+    template = jax.eval_shape(lambda: jax.lax.map(sac.init, jnp.zeros((n, 2), jnp.uint32))).actor.params
+    actors = flax.serialization.from_bytes(template, (directory / "actors.msgpack").read_bytes())
+    return PerTaskExperts(family_name, actors, meta)

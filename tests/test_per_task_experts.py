@@ -1,0 +1,169 @@
+"""Per-task experts (App. C.2): the task-mapped trainer, loading, and collection by the plan's collectors."""
+
+from __future__ import annotations
+
+import json
+
+import flax
+import jax
+import numpy as np
+import pytest
+
+from bati.data import store
+from bati.data.collect import _chunks, _rollout_chunk, collect
+from bati.data.plan import make_plan
+from bati.envs import get_family
+from bati.envs.rollout import LockstepEnvs
+from bati.experts import load
+from bati.experts.per_task import PER_TASK_DIR, PerTaskExperts, training_tasks
+from bati.experts.sac import SACConfig
+from bati.experts.train import ExpertTrainConfig, train_expert
+
+TINY = dict(per_task=True, total_steps=400, start_steps=200, update_every=50, eval_every=400,
+            checkpoint_every=200, sac=SACConfig(hidden_dims=(16, 16), batch_size=16))
+
+
+def _train(tmp_path, name, **settings):
+    config = ExpertTrainConfig("PointGoal", out_dir=tmp_path / name, export_dir=tmp_path / f"zoo-{name}",
+                               **{**TINY, **settings})
+    train_expert(config, show_progress=False)
+    return load("PointGoal", tmp_path / f"zoo-{name}", "per-task")
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    tmp_path = tmp_path_factory.mktemp("per-task")
+    return {"three": _train(tmp_path, "three", tasks=(0, 1, 2)),
+            "alone": _train(tmp_path, "alone", tasks=(1,)),
+            "resumed": (_train(tmp_path, "resumed", tasks=(0, 1, 2), total_steps=200, start_steps=100),
+                        _train(tmp_path, "resumed", tasks=(0, 1, 2), start_steps=100)),
+            "straight": _train(tmp_path, "straight", tasks=(0, 1, 2), start_steps=100),
+            "dir": tmp_path}
+
+
+def _actor(experts: PerTaskExperts, i: int):
+    return jax.tree_util.tree_map(lambda x: np.asarray(x[i]), experts.actors)
+
+
+def test_each_task_trained_beside_others_gets_the_parameters_it_gets_alone(trained):
+    three, alone = trained["three"], trained["alone"]
+    assert three.meta["task_indices"] == [0, 1, 2] and alone.meta["task_indices"] == [1]
+    jax.tree_util.tree_map(np.testing.assert_array_equal, _actor(three, 1), _actor(alone, 0))
+    # and the tasks did not share parameters: expert 0 differs from expert 1
+    assert not np.allclose(_actor(three, 0)["params"]["Dense_0"]["kernel"],
+                           _actor(three, 1)["params"]["Dense_0"]["kernel"])
+
+
+def test_resumed_per_task_training_gives_the_uninterrupted_experts(trained):
+    first, resumed = trained["resumed"]
+    assert first.meta["train_steps_per_task"] == 200 and resumed.meta["train_steps_per_task"] == 400
+    jax.tree_util.tree_map(np.testing.assert_array_equal, resumed.actors, trained["straight"].actors)
+    lines = (trained["dir"] / "resumed" / "metrics.jsonl").read_text().splitlines()
+    assert len(json.loads(lines[-1])["eval_returns"]) == 3
+
+
+def test_export_holds_the_tasks_and_actors_only(trained):
+    entry = trained["dir"] / "zoo-three" / "PointGoal" / PER_TASK_DIR
+    assert sorted(p.name for p in entry.iterdir()) == ["actors.msgpack", "expert.json"]
+    meta = json.loads((entry / "expert.json").read_text())
+    family = get_family("PointGoal")
+    expected = [family.task_to_array(t).tolist() for t in training_tasks(family)[:3]]
+    np.testing.assert_allclose(meta["tasks"], expected)
+    assert meta["kind"] == "per-task" and meta["split_seed"] == 0
+
+
+def _labels(n: int) -> np.ndarray:
+    return np.linspace(-0.9, 0.9, n)
+
+
+def _labelled_experts(family_name: str, n: int) -> PerTaskExperts:
+    """Per-task experts whose actor i always acts about _labels(n)[i] on every action dimension (zero
+    weights, the mean's bias atanh of it, the smallest std: ~7 std apart from the next expert's)."""
+    family = get_family(family_name)
+    env = family.make_env(training_tasks(family)[0], noise=0.0)
+    obs_dim, action_dim = env.observation_space.shape[0], env.action_space.shape[0]
+    env.close()
+    meta = {"kind": "per-task", "obs_dim": obs_dim, "action_dim": action_dim, "hidden_dims": [4],
+            "tasks": [family.task_to_array(t).tolist() for t in training_tasks(family)][:n]}
+    experts = PerTaskExperts(family_name, None, meta)
+    template = experts._sac.init(jax.random.PRNGKey(0)).actor.params
+    targets = np.arctanh(_labels(n))
+
+    def stacked(path, leaf):
+        names = [getattr(p, "key", None) for p in path]
+        out = np.zeros((n,) + leaf.shape, np.float32)
+        if names[-3:] == ["params", "Dense_0", "bias"]:  # the mean head
+            out += targets[:, None]
+        if names[-3:] == ["params", "Dense_1", "bias"]:  # the log-std head (clipped to its smallest)
+            out -= 20.0
+        return out
+
+    experts.actors = jax.tree_util.tree_map_with_path(stacked, template)
+    return experts
+
+
+@pytest.mark.parametrize("family_name", ["PointGoal", "HalfCheetahDir"])
+def test_eq9_and_eq10_run_the_expert_the_plan_names_for_each_episode(family_name):
+    family = get_family(family_name)
+    experts = _labelled_experts(family_name, 20)
+    plan = make_plan(family, 0, n_episodes=10, n_context_episodes=2)
+    chunks = _chunks(family, plan, chunk_size=64)
+    jobs = [(d, e) for d in plan.datasets for e in range(len(d.collectors))]
+    with LockstepEnvs(family, 0.0) as envs:
+        for chunk in chunks[:3]:
+            _, actions, _ = _rollout_chunk(family, experts, 0.0, 0, chunk, 64, envs)
+            for k in range(len(chunk.tasks)):
+                d, e = jobs[chunk.index * 64 + k]
+                collector = int(d.collectors[e])
+                nearest = np.abs(actions[k, :, 0, None] - _labels(20)).argmin(-1)
+                np.testing.assert_array_equal(nearest, collector)
+    # Eq. 9: a training task's own expert for 90%; Eq. 10: test tasks from the most different / similar one
+    train0 = next(d for d in plan.datasets if d.split == "train" and d.task_index == 0)
+    assert np.mean(train0.collectors == 0) == 0.9
+    for d in plan.datasets:
+        if d.split != "train":
+            expected = plan.most_different if d.split == "p_test" else plan.most_similar
+            assert np.all(d.collectors == expected[d.task_index])
+
+
+def test_the_expert_of_any_task_is_the_most_similar_training_tasks_first_on_ties():
+    experts = _labelled_experts("HalfCheetahDir", 20)
+    family = get_family("HalfCheetahDir")
+    train = training_tasks(family)
+    for task in (-1.0, 1.0):
+        first = next(i for i, t in enumerate(train) if t == task)
+        action = experts(np.zeros(experts.meta["obs_dim"]), task)
+        np.testing.assert_allclose(action, _labels(20)[first], atol=1e-5)
+
+
+def test_per_task_collection_is_its_own_collection_and_refuses_other_tasks(trained, tmp_path):
+    zoo = tmp_path / "zoo"
+    source = trained["dir"] / "zoo-three" / "PointGoal" / PER_TASK_DIR
+    (zoo / "PointGoal" / PER_TASK_DIR).mkdir(parents=True)
+    for name in ("actors.msgpack", "expert.json"):
+        (zoo / "PointGoal" / PER_TASK_DIR / name).write_bytes((source / name).read_bytes())
+    with pytest.raises(ValueError, match="trained for the 3 training tasks of data seed 0"):
+        collect("PointGoal", "quick", root=tmp_path / "data", zoo_dir=zoo, experts="per-task", progress=False,
+                workers=1, n_episodes=2, n_context_episodes=1)
+    assert not (tmp_path / "data" / "PointGoal").exists() or not any((tmp_path / "data" / "PointGoal").iterdir())
+    family = get_family("PointGoal")
+    path = store.collection_dir(tmp_path, family, "quick", 0, 1.0, None, "per-task")
+    assert path.name.endswith("-per-task-experts")
+    assert "--experts per-task" in store.collect_command(family, "quick", 0, 1.0, tmp_path, None, "per-task")
+    with pytest.raises(ValueError, match="choose one of conditioned, per-task"):
+        collect("PointGoal", "quick", root=tmp_path / "data", experts="per_task", progress=False)
+
+
+def test_a_missing_per_task_export_names_the_command(tmp_path):
+    with pytest.raises(FileNotFoundError, match="--per-task"):
+        load("PointGoal", tmp_path, "per-task")
+
+
+def test_per_task_settings_are_refused_before_any_work(tmp_path):
+    with pytest.raises(ValueError, match="--tasks picks per-task experts"):
+        ExpertTrainConfig("PointGoal", tasks=(0,), out_dir=tmp_path / "r").resolved()
+    with pytest.raises(ValueError, match="distinct training-task indices in 0..19"):
+        ExpertTrainConfig("PointGoal", per_task=True, tasks=(0, 20), out_dir=tmp_path / "r").resolved()
+    with pytest.raises(ValueError, match="must exceed start_steps"):
+        ExpertTrainConfig("PointGoal", per_task=True, total_steps=100, out_dir=tmp_path / "r").resolved()
+    assert not (tmp_path / "r").exists()
