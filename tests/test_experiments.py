@@ -319,8 +319,9 @@ TINY = ("steps=10", "eval_every=10", "log_every=10", "batch_size=8", "iql.hidden
 def tiny_spec(name: str):
     spec = get_spec(name)
     parts = []
-    # noise's two parts differ only in their family, which PointGoal replaces here: one part tests them
-    for part in spec.parts[:1] if name == "noise" else spec.parts:
+    # noise's two parts differ only in their family, which PointGoal replaces here: one part tests them; experts'
+    # second part differs in who collects (per-task experts: tests/test_per_task_experts.py collects with them)
+    for part in spec.parts[:1] if name in ("noise", "experts") else spec.parts:
         settings = tuple(s for s in part.settings if not s.startswith(("train_task_range", "test_task_range")))
         if len(settings) != len(part.settings):  # PointGoal's parameter is an angle in [0, pi]
             settings += ("train_task_range=[0.0, 1.5]", "test_task_range=[1.5, 3.1]")

@@ -38,6 +38,7 @@ def trained(tmp_path_factory):
             "resumed": (_train(tmp_path, "resumed", tasks=(0, 1, 2), total_steps=200, start_steps=100),
                         _train(tmp_path, "resumed", tasks=(0, 1, 2), start_steps=100)),
             "straight": _train(tmp_path, "straight", tasks=(0, 1, 2), start_steps=100),
+            "all": _train(tmp_path, "all", total_steps=300),
             "dir": tmp_path}
 
 
@@ -167,3 +168,21 @@ def test_per_task_settings_are_refused_before_any_work(tmp_path):
     with pytest.raises(ValueError, match="must exceed start_steps"):
         ExpertTrainConfig("PointGoal", per_task=True, total_steps=100, out_dir=tmp_path / "r").resolved()
     assert not (tmp_path / "r").exists()
+
+
+def test_all_tasks_experts_collect_a_loadable_collection_and_have_a_card(trained, tmp_path):
+    from bati.data import load_family_data
+    from bati.experts.card import write_card
+
+    zoo = trained["dir"] / "zoo-all"
+    result = collect("PointGoal", "quick", root=tmp_path, zoo_dir=zoo, experts="per-task", progress=False, workers=1,
+                     n_episodes=2, n_context_episodes=1)
+    assert result.manifest["experts"] == "per-task" and result.manifest["settings"]["experts"] == "per-task"
+    data = load_family_data("PointGoal", "quick", root=tmp_path, experts="per-task")
+    assert len(data.train_tasks) == 20
+    with pytest.raises(Exception, match="no PointGoal data"):  # the conditioned collection is another one
+        load_family_data("PointGoal", "quick", root=tmp_path)
+    card = write_card("PointGoal", zoo_dir=zoo, experts="per-task")
+    assert card["experts"] == "per-task" and len(card["train_returns"]) == 20
+    assert (zoo / "PointGoal" / PER_TASK_DIR / "card.md").is_file()
+    assert not (zoo / "PointGoal" / "card.md").exists()

@@ -117,11 +117,13 @@ class ExpertsCard:
     seed: int = 0
     """Seed of the train/test task split (the same as `bati data collect --seed`)."""
     zoo_dir: Path | None = None
+    experts: Literal["conditioned", "per-task"] = "conditioned"
+    """The family's task-conditioned expert, or its per-task experts (card in <zoo>/<family>/per-task/)."""
 
     def run(self) -> None:
         from bati.experts.card import write_card
 
-        card = write_card(self.family, self.seed, self.zoo_dir)
+        card = write_card(self.family, self.seed, self.zoo_dir, self.experts)
         console.print(card["summary"])
 
 

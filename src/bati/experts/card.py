@@ -20,35 +20,51 @@ from bati.io import atomic_write_json, atomic_write_text, git_commit
 HALF_CHEETAH_CONTROL_COST = 0.05
 
 
-def expert_episodes(expert: Expert, env_tasks, policy_tasks, noise, seed) -> Episodes:
-    """One deterministic episode per env task, acting as the expert for the matching policy task."""
+def expert_episodes(expert: Expert, env_tasks, policy_tasks, noise, seed, collectors=None) -> Episodes:
+    """One deterministic episode per env task, acting as the expert for the matching policy task (or, with
+    `collectors`, as the expert of those training tasks: per-task experts run expert `collectors[k]`)."""
     family = expert.family
     task_arrays = np.stack([family.task_to_array(t) for t in policy_tasks])
     key = jax.random.PRNGKey(seed)
-    return rollout(family, env_tasks, lambda obs, _: expert.act_from_arrays(obs, task_arrays, True, key),
-                   noise=noise, seed=seed)
+    if collectors is None:
+        act = lambda obs, _: expert.act_from_arrays(obs, task_arrays, True, key)  # noqa: E731
+    else:
+        act = lambda obs, _: expert.act_for_collectors(obs, np.asarray(collectors), task_arrays, True, key)  # noqa: E731
+    return rollout(family, env_tasks, act, noise=noise, seed=seed)
 
 
-def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = None) -> dict:
-    """Evaluate the expert of `family_name` and write card.json / card.md next to it."""
+def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = None,
+               experts: str = "conditioned") -> dict:
+    """Evaluate the expert of `family_name` (or its per-task experts) and write card.json / card.md next to it.
+    Per-task experts: the expert for training task i is expert i, for a test task the most similar training
+    task's (App. C.2), and the card lies in the experts' own directory."""
     family = get_family(family_name)
     if family.discrete_actions:  # nothing shipped to describe: its values are exact (docs/environments.md)
         raise ValueError(f"{family_name}'s expert is the exact best response, computed, not shipped: it has no "
                          "card; its exact values per hand are bati.envs.kuhn.best_response_value")
-    expert = load(family_name, zoo_dir)
+    expert = load(family_name, zoo_dir, experts)
     directory = Path(zoo_dir or ZOO_DIR) / family_name
     train, test = family.split_tasks(seed)
-    wrong = [train[family.most_different(t, train)] for t in test]
+    if experts == "per-task":
+        from bati.experts.per_task import PER_TASK_DIR
+
+        expert.check_tasks(train)
+        directory = directory / PER_TASK_DIR
+    different = [family.most_different(t, train) for t in test]
+    similar = [family.most_similar(t, train) for t in test]
+    wrong = [train[j] for j in different]
     noise = family.default_noise
 
-    own = expert_episodes(expert, train + test, train + test, noise, seed=1000 + seed)
-    against = expert_episodes(expert, test, wrong, noise, seed=1000 + seed + len(train))
+    own = expert_episodes(expert, train + test, train + test, noise, seed=1000 + seed,
+                          collectors=list(range(len(train))) + similar)
+    against = expert_episodes(expert, test, wrong, noise, seed=1000 + seed + len(train), collectors=different)
     own_test = own.returns[len(train):]
     card = {
         "family": family_name,
+        "experts": experts,
         "split_seed": seed,
         "eval_noise": noise,
-        "train_steps": expert.meta["train_steps"],
+        "train_steps": expert.meta.get("train_steps", expert.meta.get("train_steps_per_task")),
         "train_wall_time_s": expert.meta["train_wall_time_s"],
         "train_tasks": train,
         "test_tasks": test,
@@ -93,11 +109,16 @@ def _markdown(card: dict) -> str:
         )
         for i, (task, ret, free) in enumerate(zip(tasks, rets, frees))
     )
-    return f"""# Expert card: {card['family']}
+    per_task = card.get("experts") == "per-task"
+    what = (f"One SAC per training task (App. C.2), {card['train_steps']:,} environment transitions each, all "
+            f"{len(card['train_tasks'])} trained as one program in {card['train_wall_time_s'] / 60:.1f} min"
+            if per_task else f"Task-conditioned SAC, {card['train_steps']:,} environment transitions, "
+            f"{card['train_wall_time_s'] / 60:.1f} min of training")
+    flag = " --experts per-task" if per_task else ""
+    return f"""# Expert card: {card['family']}{' (per-task experts)' if per_task else ''}
 
-Task-conditioned SAC, {card['train_steps']:,} environment transitions, {card['train_wall_time_s'] / 60:.1f} min
-of training on this project's 2-core CPU machine.
-Evaluated with `bati experts card --family {card['family']} --seed {card['split_seed']}` at commit
+{what} on this project's 2-core CPU machine.
+Evaluated with `bati experts card --family {card['family']} --seed {card['split_seed']}{flag}` at commit
 `{card['commit']}` (deterministic actions, one episode per task, eps = {card['eval_noise']:g}).
 
 **{card['summary']}**

@@ -123,14 +123,14 @@ def train_per_task_experts(config, show_progress: bool = True) -> Path:
     split = jax.vmap(jax.random.split)(keys)  # (n, 2, 2): the init key, the running key
     state, keys = learner.init(split[:, 0]), split[:, 1]
     rngs = [np.random.default_rng([config.seed, i]) for i in indices]
-    buffers = TaskBuffers(len(tasks), config.total_steps, obs_dim, action_dim)
+    length = family.record.episode_length
+    buffers = TaskBuffers(len(tasks), -(-config.total_steps // length) * length, obs_dim, action_dim)  # whole episodes
     episode, wall_time = 0, 0.0
     check_run_config(out / "config.json", json.loads(json.dumps(asdict(config), default=str)),
                      RESUME_IDENTITY + ("per_task", "tasks", "update_every"))
     if (out / "checkpoint.npz").exists():
         state, keys, rngs, episode, wall_time = _load_checkpoint(out, buffers, state)
 
-    length = family.record.episode_length
     progress = Progress(
         TextColumn(f"[bold]{config.family} per-task experts ({len(tasks)})"), BarColumn(),
         TextColumn("{task.completed:,}/{task.total:,} steps per task"), TextColumn("{task.fields[status]}"),
