@@ -298,6 +298,13 @@ def _metrics_without_torn(env: Env) -> None:
     assert steps == [5]
 
 
+def _recon_config(env: Env) -> None:
+    """A run directory recording a Recon run (its config only: the refusal must not need more)."""
+    (env.tmp / "recon").mkdir()
+    record = json.loads((env.run / "config.json").read_text())
+    (env.tmp / "recon" / "config.json").write_text(json.dumps({**record, "method": "recon"}))
+
+
 def _no_lock_left(env: Env) -> None:
     assert not (env.run / LOCK_NAME).exists()
 
@@ -323,6 +330,43 @@ CASES = [
          ("--config reruns", "leave out --steps")),
     Case("method setting out of range", lambda e: [*TRAIN, "--bati.latent-samples", "0", "--data-root", e.data], 2,
          ("bati.latent_samples", ">= 1")),
+    *[Case(f"range: {' '.join(args)}", lambda e, args=args: [*TRAIN, *args, "--data-root", e.data, "--out-dir",
+                                                             e.tmp / "new-run"], 2, needles)
+      for args, needles in [
+          (("--iql.expectile", "1.5"), ("iql.expectile", "below 1")),
+          (("--iql.expectile", "0"), ("iql.expectile", "> 0")),
+          (("--iql.expectile", "nan"), ("iql.expectile", "nan")),
+          (("--iql.discount", "-0.5"), ("iql.discount", "at most 1")),
+          (("--iql.tau", "2"), ("iql.tau", "at most 1")),
+          (("--iql.max-exp-advantage", "-1"), ("iql.max_exp_advantage", "> 0")),
+          (("--method", "csro", "--csro.club-weight", "-1"), ("csro.club_weight", ">= 0")),
+          (("--method", "csro", "--csro.club-weight", "nan"), ("csro.club_weight", "finite")),
+          (("--method", "focal", "--focal.push-weight", "-1"), ("focal.push_weight", ">= 0")),
+          (("--method", "focal", "--focal.push-epsilon", "0"), ("focal.push_epsilon", "> 0")),
+          (("--method", "unicorn", "--unicorn.focal-weight", "-1"), ("unicorn.focal_weight", ">= 0")),
+          (("--method", "er-trl", "--ertrl.covariance-epsilon", "-1"), ("ertrl.covariance_epsilon", "> 0")),
+          (("--method", "er-trl", "--ertrl.entropy-weight", "nan"), ("ertrl.entropy_weight", "finite")),
+          (("--bati.embedding-log-var", "nan"), ("bati.embedding_log_var", "finite")),
+          (("--bati.refine-steps", "2", "--bati.refine-learning-rate", "nan"), ("bati.refine_learning_rate",)),
+          (("--method", "dpt", "--dpt.num-layers", "0"), ("dpt.num_layers", ">= 1")),
+          (("--method", "dpt", "--dpt.num-heads", "3"), ("dpt.model_dim (64) must be a multiple of dpt.num_heads",)),
+          (("--method", "dpt", "--dpt.model-dim", "0"), ("dpt.model_dim", ">= 1")),
+          (("--method", "dpt", "--dpt.max-length", "10"), ("dpt.max_length (10) must be >= the context length",)),
+          (("--eval-context-length", "5000"), ("eval_context_length (5000)", "context data")),
+          (("--task-key", "goal"), ("--task-key applies to your own data",)),
+          (("--held-out", "1.5"), ("--held-out applies to your own data",)),
+      ]],
+    Case("sweep: a setting twice", lambda e: ["sweep", "--families", FAMILY, "--settings", "steps=100", "steps=200",
+                                              "--out-dir", e.tmp / "sweep", "--data-root", e.data], 2,
+         ("setting steps is given twice",)),
+    Case("output inside the package", lambda e: [*TRAIN, "--data-root", e.data, "--out-dir",
+                                                 Path(collect_mod.__file__).parents[1] / "run-here"], 2,
+         ("lies inside the bati package",)),
+    Case("sweep inside the package", lambda e: ["sweep", "--families", FAMILY, "--data-root", e.data, "--out-dir",
+                                                Path(collect_mod.__file__).parents[1] / "sweep-here"], 2,
+         ("lies inside the bati package",)),
+    Case("likelihood of a run without a table", lambda e: ["likelihood", "--run-dir", e.tmp / "recon"], 2,
+         ("method 'recon' has no task table",), setup=lambda e, m, s: _recon_config(e)),
     Case("unknown logging sink", lambda e: [*TRAIN, "--log-to", "csv", "--data-root", e.data], 2,
          ("unknown logging sink 'csv'",)),
     Case("--datasets without a value", lambda e: ["train", "--datasets", "--data-root", e.data], 2,

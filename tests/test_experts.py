@@ -126,6 +126,8 @@ def test_an_expert_is_exported_into_its_run_directory_unless_the_package_is_aske
     ({"into_package": True, "export_dir": "zoo"}, "either --export-dir or --into-package"),
     ({"total_steps": 10**20}, "total_steps must be at most 1,000,000,000"),
     ({"seed": -1}, "seed must be an integer >= 0, got -1"),
+    ({"total_steps": 4000}, "total_steps (4,000) must exceed start_steps (5,000)"),
+    ({"per_task": True, "tasks": (0, 0)}, "give distinct training-task indices in 0..19"),
     ({"updates_per_step": float("nan")}, "updates_per_step must be a finite number >= 0"),
     ({"sac.batch_size": 0}, "sac.batch_size must be an integer >= 1, got 0"),
     ({"sac.hidden_dims": (0,)}, "sac.hidden_dims must be one or more integers >= 1 (the hidden layers' sizes), got (0,)"),

@@ -20,15 +20,29 @@ def check_integer(name: str, value, low: int = 1, *, hint: str = "", error: type
     return value
 
 
-def check_number(name: str, value, *, positive: bool = True, at_most: float | None = None) -> float:
-    """`value` if it is a finite real number, > 0 (`positive`) or >= 0, and at most `at_most`; else ValueError."""
+def check_number(name: str, value, *, positive: bool = True, at_most: float | None = None,
+                 below: float | None = None) -> float:
+    """`value` if it is a finite real number, > 0 (`positive`) or >= 0, at most `at_most` and below `below`;
+    else ValueError."""
     low = "> 0" if positive else ">= 0"
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and (
-        value > 0 if positive else value >= 0) and (at_most is None or value <= at_most)
+        value > 0 if positive else value >= 0) and (at_most is None or value <= at_most) and (
+        below is None or value < below)
     if not ok:
-        bound = f" and at most {at_most:g}" if at_most is not None else ""
+        bound = f" and at most {at_most:g}" if at_most is not None else f" and below {below:g}" if below is not None else ""
         raise ValueError(f"{name} must be a finite number {low}{bound}, got {value!r}")
     return float(value)
+
+
+def check_finite_fields(section: str, config) -> None:
+    """Every real-valued setting of a dataclass of settings is a finite number (NaN or inf: one line now,
+    not a non-finite loss minutes into training)."""
+    from dataclasses import fields
+
+    for f in fields(config):
+        value = getattr(config, f.name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"{section}.{f.name} must be a finite number, got {value!r}")
 
 
 def check_hidden_dims(name: str, dims) -> tuple[int, ...]:

@@ -503,10 +503,26 @@ def main(argv: list[str] | None = None) -> int:
         except (UserError, BatiError, TaskError, ValueError) as err:
             return _error(str(err), 2)
         except Terminated:  # SIGTERM (kill, a scheduler): the same clean-up as Ctrl-C
+            _ignore_further_interrupts(argv)
             return _error("terminated; run the same command again to resume", TERMINATED_EXIT_CODE)
         except KeyboardInterrupt:
+            _ignore_further_interrupts(argv)
             return _error("interrupted; run the same command again to resume", 130)
     return 0
+
+
+def _ignore_further_interrupts(argv) -> None:
+    """The command has stopped and cleaned up: a second Ctrl-C while the interpreter exits (its atexit
+    callbacks) would only print a traceback, so it is ignored (the `bati` program only, `argv` None: a
+    caller of main() keeps its own Ctrl-C)."""
+    import signal
+
+    if argv is not None:
+        return
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread (main() called from a thread): nothing to protect
+        pass
 
 
 NEEDS_A_VALUE = ("--datasets",)

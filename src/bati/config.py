@@ -15,7 +15,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any, Literal, get_args, get_type_hints
 
-from bati.checks import check_hidden_dims, check_integer, check_number
+from bati.checks import check_finite_fields, check_hidden_dims, check_integer, check_number
 from bati.data.own import OWN_FAMILY
 from bati.envs import TaskSplit
 from bati.io import read_run_config
@@ -224,6 +224,9 @@ class TrainConfig:
                              "leave out --family")
         if not own and self.family == OWN_FAMILY:
             raise ValueError(f"family {OWN_FAMILY!r} is your own data: give it with --datasets")
+        if not own and (self.task_key is not None or self.held_out != TrainConfig.held_out):
+            name = "--task-key" if self.task_key is not None else "--held-out"
+            raise ValueError(f"{name} applies to your own data: give it with --datasets")
         if self.eval_env is not None:
             if not own:
                 raise ValueError(f"--eval-env is your own data's env: the families' envs are built in (the "
@@ -243,11 +246,17 @@ class TrainConfig:
         for setting in ("seed", "data_seed"):
             check_integer(setting, getattr(self, setting), low=0)
         for setting, value in (("learning_rate", self.learning_rate), ("iql.learning_rate", self.iql.learning_rate),
-                               ("iql.temperature", self.iql.temperature)):
+                               ("iql.temperature", self.iql.temperature),
+                               ("iql.max_exp_advantage", self.iql.max_exp_advantage)):
             check_number(setting, value)
+        check_number("iql.expectile", self.iql.expectile, below=1.0)  # 1 (or 0): V ignores one side of Q
+        for setting in ("discount", "tau"):
+            check_number(f"iql.{setting}", getattr(self.iql, setting), at_most=1.0)
         check_sinks(self.log_to)  # an unknown sink, or its package missing: before any work
         check_foreign_sections(self, family.record)
         section = self.method_config()
+        if is_dataclass(section):
+            check_finite_fields(method_config_key(self.method), section)
         if hasattr(section, "check"):
             section.check(method_config_key(self.method))
         layers = {"iql.hidden_dims": self.iql.hidden_dims}
@@ -298,6 +307,20 @@ class TrainConfig:
         if own and resolved.eval_context_length > context_length:
             raise ValueError(f"eval_context_length ({resolved.eval_context_length}) must be at most context_length "
                              f"({context_length}): your episodes are cut into segments of context_length")
+        if not own:  # a context is cut from one test task's context data: it cannot be longer than they are
+            from bati.data.collect import scale_sizes
+
+            episodes = pick(resolved.context_episodes, scale_sizes(family, resolved.data_scale)[1])
+            held = episodes * family.record.episode_length
+            for setting in ("context_length", "eval_context_length"):
+                if getattr(resolved, setting) > held:
+                    raise ValueError(f"{setting} ({getattr(resolved, setting)}) must be at most the {held:,} transitions "
+                                     f"of a test task's context data ({episodes} episodes of "
+                                     f"{family.record.episode_length}; more: --context-episodes)")
+        if self.method == "dpt" and resolved.dpt.max_length < max(context_length, resolved.eval_context_length):
+            raise ValueError(f"dpt.max_length ({resolved.dpt.max_length}) must be >= the context length "
+                             f"({max(context_length, resolved.eval_context_length)}): the transformer's positions "
+                             "cover max_length transitions")
         if not own and resolved.task_batch > split.n_train:
             raise ValueError(f"task_batch ({resolved.task_batch}) must be at most n_train_tasks ({split.n_train}): "
                              "a batch draws distinct training tasks")

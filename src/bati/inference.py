@@ -33,7 +33,7 @@ from bati.data import FamilyData, sample_contexts
 from bati.data.batch import TRANSITION_FIELDS
 from bati.errors import BatiError
 from bati.evaluate import calibrate as calibrate_method
-from bati.io import git_commit
+from bati.io import git_commit, read_run_config
 from bati.train import open_run
 
 QUANTILE = 0.95
@@ -58,6 +58,15 @@ class LoadedRun:
 def load_run(run_dir: Path, calibrate: bool = True) -> LoadedRun:
     """A run of a likelihood method at its last checkpoint (BATI-auto calibrated unless `calibrate` is False)."""
     run_dir = Path(run_dir)
+    from bati.methods import METHODS
+
+    try:  # the recorded method first: a method without a table is one line before anything is loaded
+        recorded = read_run_config(run_dir).get("method")
+    except (OSError, ValueError):
+        recorded = None  # open_run says what is wrong with the directory
+    cls = METHODS.get(recorded) if isinstance(recorded, str) else None
+    if cls is not None and not (hasattr(cls, "task_latents") and hasattr(cls, "score")):
+        raise InferenceError(f"{run_dir}: method {recorded!r} has no task table and likelihood to score")
     try:
         run = open_run(run_dir)
     except ValueError as err:

@@ -197,11 +197,25 @@ def _preview(line: str, width: int = 40) -> str:
 
 
 # --- directories ---------------------------------------------------------------------------------
-def check_directory(path: str | Path, what: str, *, writable: bool = True) -> None:
+PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+def check_outside_package(path: str | Path, what: str) -> None:
+    """PathError for an output path inside the installed bati package (an editable install's src/bati too):
+    runs, data and reports go to a run directory, a data root or an --out path, never into the package."""
+    resolved = Path(path).resolve()
+    if resolved == PACKAGE_DIR or PACKAGE_DIR in resolved.parents:
+        raise PathError(f"{what} {path} lies inside the bati package ({PACKAGE_DIR}): give a path outside it")
+
+
+def check_directory(path: str | Path, what: str, *, writable: bool = True, package: bool = False) -> None:
     """Refuse, before any work and with one line, a directory that is a file, lies under a file, or
-    (`writable`) cannot be created or written; PathError. Found now rather than after minutes of
+    (`writable`) cannot be created or written, or lies inside the bati package (unless `package`: the
+    shipped experts' zoo, `--into-package`); PathError. Found now rather than after minutes of
     collecting or training, and before anything was written elsewhere."""
     path = Path(path)
+    if writable and not package:
+        check_outside_package(path, what)
     existing = next((p for p in (path, *path.parents) if p.exists()), None)
     if path.exists() and not path.is_dir():
         raise PathError(f"{what} {path} is a file, not a directory")

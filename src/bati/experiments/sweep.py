@@ -76,6 +76,9 @@ class Grid:
             if key.partition(".")[0] in NOT_OVERRIDABLE:
                 raise SweepError(f"{key} cannot be set per cell: use the grid's axes (families, methods, seeds, "
                                  "noises, scales), --out-dir and --data-root")
+            if key in out:
+                raise SweepError(f"setting {key} is given twice ({item!r} after {key}={json.dumps(out[key])}): "
+                                 "give it once (several values are several sweeps)")
             try:
                 value = json.loads(text)
             except ValueError:
@@ -446,7 +449,14 @@ def _ray_collect(ray, futures: dict, finished: Callable) -> None:
 
 
 def check_out_dir(out_dir: Path) -> None:
-    """The sweep directory must be a directory we can write (SweepError otherwise, nothing written)."""
+    """The sweep directory must be a directory we can write, outside the bati package (SweepError otherwise,
+    nothing written)."""
+    from bati.io import PathError, check_outside_package
+
+    try:
+        check_outside_package(out_dir, "the sweep directory")
+    except PathError as err:
+        raise SweepError(str(err)) from err
     existing = next((p for p in (out_dir, *out_dir.parents) if p.exists()), None)
     if out_dir.exists() and not out_dir.is_dir():
         raise SweepError(f"the sweep directory {out_dir} is a file")

@@ -109,7 +109,7 @@ def train_per_task_experts(config, show_progress: bool = True) -> Path:
     family = get_family(config.family)
     out: Path = config.out_dir
     check_directory(out, "the experts' run directory")
-    check_directory(config.export_dir / config.family / PER_TASK_DIR, "the zoo directory")
+    check_directory(config.export_dir / config.family / PER_TASK_DIR, "the zoo directory", package=config.into_package)
     all_tasks = training_tasks(family)
     indices = list(range(len(all_tasks))) if config.tasks is None else list(config.tasks)
     tasks = [all_tasks[i] for i in indices]

@@ -140,7 +140,7 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
     family = get_family(config.family)
     out: Path = config.out_dir
     check_directory(out, "the expert's run directory")  # a file, or not writable: now, not after training
-    check_directory(config.export_dir / config.family, "the zoo directory")
+    check_directory(config.export_dir / config.family, "the zoo directory", package=config.into_package)
     probe = family.make_env(family.sample_tasks(1, seed=0)[0], noise=0.0)
     obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
     sac = SAC(obs_dim, family.task_dim, action_dim, config.sac)

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from bati.checks import check_number
 from bati.methods.base import MethodSpec, TaskInference
 from bati.methods.dynamics import DynamicsModel, context_nll, context_nll_terms, init_dynamics
 
@@ -43,6 +44,7 @@ class BATIConfig:
             raise ValueError(f"{section}.latent_samples must be an integer >= 1, got {self.latent_samples!r}")
         if isinstance(self.refine_steps, bool) or not isinstance(self.refine_steps, int) or self.refine_steps < 0:
             raise ValueError(f"{section}.refine_steps must be an integer >= 0, got {self.refine_steps!r}")
+        check_number(f"{section}.refine_learning_rate", self.refine_learning_rate)
 
 
 class BATI(TaskInference):

@@ -20,6 +20,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from bati.checks import check_integer
 from bati.envs import EPISODE_LENGTH
 from bati.methods.base import MethodSpec, TaskInference
 from bati.nets import MLP, GaussianHead, gaussian_log_prob
@@ -34,6 +35,14 @@ class DPTConfig:
     num_heads: int = 4
     max_length: int = EPISODE_LENGTH
     """Longest context the learned positions cover."""
+
+    def check(self, section: str = "dpt") -> None:
+        """ValueError naming `section`.<setting> for a transformer that cannot be built."""
+        for name in ("model_dim", "num_layers", "num_heads", "max_length"):
+            check_integer(f"{section}.{name}", getattr(self, name))
+        if self.model_dim % self.num_heads:
+            raise ValueError(f"{section}.model_dim ({self.model_dim}) must be a multiple of {section}.num_heads "
+                             f"({self.num_heads}): each head reads model_dim / num_heads features")
 
 
 class CausalTransformer(nn.Module):

@@ -65,6 +65,7 @@ class ERTRLConfig(FOCALConfig):
         super().check(section)
         check_integer(f"{section}.noise_dim", self.noise_dim)
         check_number(f"{section}.metric_weight", self.metric_weight, positive=False)
+        check_number(f"{section}.covariance_epsilon", self.covariance_epsilon)
 
 
 def gaussian_entropy(samples: jax.Array, epsilon: float = 1e-5) -> jax.Array:

@@ -19,6 +19,7 @@ from typing import Literal
 import jax
 import jax.numpy as jnp
 
+from bati.checks import check_number
 from bati.methods.base import MethodSpec, TaskInference
 from bati.methods.encoder import ContextEncoder, dummy_context
 
@@ -44,6 +45,11 @@ class FOCALConfig:
         if self.latent_activation not in LATENT_ACTIVATIONS:
             raise ValueError(f"{section}.latent_activation must be one of {', '.join(LATENT_ACTIVATIONS)}, "
                              f"got {self.latent_activation!r}")
+        check_number(f"{section}.push_weight", self.push_weight, positive=False)
+        check_number(f"{section}.push_epsilon", self.push_epsilon)  # the push divides by distance + epsilon
+        for name in ("focal_weight", "club_weight", "entropy_weight"):  # the subclasses' weights (None: the family's)
+            if getattr(self, name, None) is not None:
+                check_number(f"{section}.{name}", getattr(self, name), positive=False)
 
 
 DISTANCES = ("squared", "root-mean")

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from bati.errors import BatiError
-from bati.io import atomic_write_text, make_dirs
+from bati.io import PathError, atomic_write_text, check_outside_package, make_dirs
 from bati.report.convergence import NEGLIGIBLE, drift_interval, format_drift, run_drift
 from bati.report.curves import save_figure
 from bati.report.held_out import HELD_OUT_COLUMNS, held_out_markdown, held_out_rows, plot_held_out
@@ -563,6 +563,10 @@ def build_report(results_dir: Path, out_dir: Path | None = None, reps: int = BOO
         raise BatiError(f"no readable eval.json under {results_dir} "
                         "(every one was skipped, see the warnings)")
     out = Path(out_dir) if out_dir is not None else results_dir / "report"
+    try:
+        check_outside_package(out, "the report directory")
+    except PathError as err:
+        raise BatiError(str(err)) from err
     make_dirs(out.parent)
     # Everything is written into a staging directory first and moved into `out` file by file at the end, so
     # a full disk or an error leaves the previous report as it was, and the error names `out`.
