@@ -1,4 +1,4 @@
-"""Self-collected context (ours, issue 15): no given context; each policy gathers its own.
+"""Self-collected context (ours, beyond the paper): no given context; each policy gathers its own.
 
 In every test task the policy starts from a prior latent, acts, and every k steps (`reinfer_every`)
 re-infers z with the method's own `infer` from that env's own transitions so far: the most recent up

@@ -56,6 +56,12 @@ SOURCES = (
     Source("12k (4x quick steps, quick data)", Path("results/quick/locomotion-12k"), "quick", ("steps=12000",)),
     Source("cpu (paper data, 100k steps, batch 16 x 64, IQL 128x128)", Path("results/cpu/experiments"), "cpu"),
     Source("paper (App. C data, 100k steps, batch 16 x 256, IQL 256x256)", Path("results/paper/experiments"), "paper"),
+    # the same scales on data collected by one SAC expert per training task (App. C.2's way; the rows above: our
+    # task-conditioned expert's data)
+    Source("cpu, per-task experts' data (one SAC per training task, App. C.2)", Path("results/cpu/experiments"), "cpu",
+           ("experts=per-task",)),
+    Source("paper, per-task experts' data (one SAC per training task, App. C.2)", Path("results/paper/experiments"),
+           "paper", ("experts=per-task",)),
 )
 
 
@@ -364,7 +370,7 @@ CLAIMS = (
           ("AntDir",), only_bati_positive),
     Claim("C7", "BATI is the best method on Kuhn poker", "Table 6", "kuhn", ("KuhnPoker",), best_on_p_test),
     Claim("C8", "BATI's p_test return is above ER-TRL's on all five MuJoCo families (ours: ER-TRL, AAAI 2025, "
-          "is not in the paper)", "issue 28", "main", MUJOCO,
+          "is not in the paper)", "beyond the paper", "main", MUJOCO,
           lambda records, families: best_on_p_test(records, families, ("er-trl",)), ("bati", "er-trl")),
     Claim("C9", "BATI-R, BATI's reward-only likelihood, has the best p_test return on all five MuJoCo families "
           "(ours: not in the paper; the families' tasks differ in the reward, HopperParam's and WalkerParam's in "
@@ -462,13 +468,18 @@ def _tested(findings: list[Finding], claim: Claim) -> list[Finding]:
                   key=lambda f: SOURCES.index(f.source) if f.source in SOURCES else -1)
 
 
+def _per_task(source: Source) -> bool:
+    return "experts=per-task" in source.settings
+
+
 def _scale_name(finding: Finding) -> str:
-    return finding.source.label.split(" ")[0]
+    return finding.source.label.split(" ")[0].rstrip(",") + (" per-task experts" if _per_task(finding.source) else "")
 
 
 def overall(findings: list[Finding], claim: Claim) -> tuple[str, str]:
-    """The verdict at the largest scale that tests the claim, and that scale's label."""
-    tested = _tested(findings, claim)
+    """The verdict at the largest scale that tests the claim on the default data (our task-conditioned
+    expert's), and that scale's label; the per-task experts' data has its verdicts beside it (`every_scale`)."""
+    tested = [f for f in _tested(findings, claim) if not _per_task(f.source)]
     return (tested[-1].verdict, _scale_name(tested[-1])) if tested else ("not tested", "-")
 
 

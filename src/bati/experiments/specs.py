@@ -266,7 +266,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         name="state-term",
         title="Beyond the paper: BATI-auto (Eq. 8's reward and state terms weighted by how well each identifies "
               "training tasks under another task's behaviour) beside BATI (full Eq. 8) and BATI-R (reward term)",
-        claim="(ours, issue 15) one BATI needs no choice: on every family its p_test inference error is at most "
+        claim="(ours) one BATI needs no choice: on every family its p_test inference error is at most "
               "min(bati, bati-r) + 10% and its return at least max(bati, bati-r) - 5%",
         parts=(Part(("PointGoal",) + MUJOCO, STATE_TERM_METHODS),),
         extra_metrics=("state_weight",),
@@ -276,7 +276,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         name="unknown-tasks",
         title="Beyond the paper: does a context fit no known task? The best table entry's Eq. 8 NLL as a score, "
               "on AntDir with test tasks outside ([pi, 2 pi)) and inside the training range",
-        claim="(ours, issue 15) contexts of out-of-range tasks score above the training tasks' (AUROC near 1), "
+        claim="(ours) contexts of out-of-range tasks score above the training tasks' (AUROC near 1), "
               "contexts of in-range test tasks do not, whoever collected them",
         parts=(Part(("AntDir",), STATE_TERM_METHODS, probes=(Probe(novelty=True),),
                     settings=_settings(train_task_range=[0.0, PI], test_task_range=[PI, 2 * PI])),
@@ -291,7 +291,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         name="refined-inference",
         title="Beyond the paper: BATI-auto's final checkpoints evaluated with Eq. 8 over N = 10, 40, 160 table "
               "samples and with 10 or 50 refining gradient steps, on PointGoal and HopperParam (where quick runs learn)",
-        claim="(ours, issue 15) continuous refinement from the arg-min sample finds latents between the table's "
+        claim="(ours) continuous refinement from the arg-min sample finds latents between the table's "
               "entries and improves the return on test tasks that lie between training tasks",
         parts=(Part(("PointGoal", "HopperParam"), ("bati-auto",),
                     probes=(Probe(), Probe(latent_samples=10), Probe(latent_samples=160), Probe(refine_steps=10),
@@ -306,7 +306,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
         title="Beyond the paper: no given context. Each test task's policy starts from a prior latent (a random "
               "training task's) and re-infers z from its own last C = 200 transitions every k = 10 or 200 steps, "
               "for 3 episodes (z carries over), beside the given p_test / p_train contexts; HopperParam and PointGoal",
-        claim="(ours, issue 15) BATI's likelihood does not care who acted, so its self-collected return approaches its "
+        claim="(ours) BATI's likelihood does not care who acted, so its self-collected return approaches its "
               "given-context return; an encoder meets a behaviour it was not trained on (its own policy's)",
         parts=(Part(("HopperParam", "PointGoal"), SELF_COLLECT_METHODS,
                     probes=(Probe(),) + tuple(Probe(self_collect_every=k, self_collect_episodes=3)
