@@ -159,6 +159,20 @@ def write(relative: str, content: bytes | str, *, where: str = "run") -> Callabl
     return setup
 
 
+def edit_manifest(key: str) -> Callable:
+    """The collection's manifest with one field changed by hand (the sizes, or the first training task)."""
+    def setup(env: Env, patch, stack) -> None:
+        path = env.collection / "manifest.json"
+        manifest = json.loads(path.read_text())
+        if key == "train_tasks":
+            manifest[key][0] = [0.0, 1.0]
+        else:
+            manifest[key] += 1
+        path.write_text(json.dumps(manifest, indent=2))
+
+    return setup
+
+
 def edit_config(**changes) -> Callable:
     """The run's config.json with some settings replaced (a hand edit)."""
     def setup(env: Env, patch, stack) -> None:
@@ -512,6 +526,18 @@ CASES = [
          ("damaged",), setup=remove("p_train-19-v0/data/metadata.json")),
     Case("dataset directory missing: info", lambda e: ["data", "info", "--family", FAMILY, "--root", e.data], 2,
          ("train-07-v0 is missing",), setup=remove("train-07-v0")),
+    *[Case(f"manifest edited by hand ({key}): {command}",
+           lambda e, command=command: ["data", command, "--root", e.data] + (["--family", FAMILY] if command == "info"
+                                                                          else []),
+           1 if command == "verify" else 2,
+           ("damaged",) if command == "verify" else ("manifest.json was edited after the collection",),
+           setup=edit_manifest(key))
+      for key in ("n_episodes", "train_tasks") for command in ("verify", "info")],
+    Case("data info: a negative seed", lambda e: ["data", "info", "--family", FAMILY, "--root", e.data, "--seed", "-1"],
+         2, ("seed must be an integer >= 0, got -1",)),
+    Case("infer: an object array", lambda e: ["infer", "--run-dir", e.run, "--context", e.tmp / "c.npz"], 2,
+         ("c.npz: actions cannot be read as an array of numbers",),
+         setup=context_file("c.npz", actions=np.array([[object()] * 2] * 4, dtype=object))),
     Case("manifest is []", lambda e: ["data", "info", "--family", FAMILY, "--root", e.data], 2,
          ("manifest.json holds a JSON list, not a manifest",), setup=write(f"{COLLECTION}/manifest.json", "[]",
                                                                            where="data")),
@@ -778,3 +804,10 @@ def test_a_directory_that_is_not_writable_is_named_not_its_lock_file(tmp_path, m
         with hold_lock(run / LOCK_NAME, "the run directory"):
             pass
     assert describe_os_error(caught.value) == f"{run}: permission denied"
+
+
+def test_verify_names_a_manifest_edited_by_hand(env, capsys):
+    edit_manifest("n_episodes")(env, None, None)
+    code, out, lines = call(capsys, ["data", "verify", "--root", env.data])
+    assert code == 1 and len(lines) == 1
+    assert "manifest.json was edited after the collection" in " ".join(out.split())

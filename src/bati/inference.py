@@ -140,7 +140,12 @@ def read_context(path: Path, obs_dim: int, action_dim: int) -> dict:
     if not isinstance(saved, np.lib.npyio.NpzFile):
         raise InferenceError(f"{path}: one array (.npy), not an .npz context file of {', '.join(TRANSITION_FIELDS)}")
     with saved:
-        raw = {name: saved[name] for name in TRANSITION_FIELDS if name in saved.files}
+        raw = {}
+        for name in (n for n in TRANSITION_FIELDS if n in saved.files):
+            try:
+                raw[name] = saved[name]
+            except (ValueError, OSError, EOFError) as err:  # an object array (pickled), a damaged member
+                raise InferenceError(f"{path}: {name} cannot be read as an array of numbers ({err})") from err
     missing = [name for name in TRANSITION_FIELDS if name not in raw]
     if missing:
         raise InferenceError(f"{path} lacks {', '.join(missing)}; a context file holds {', '.join(TRANSITION_FIELDS)}")

@@ -191,6 +191,7 @@ def collect(
             manifest["settings"] = collection_settings(fam, scale, seed, noise, n_episodes,
                                                        n_context_episodes, tasks, zoo_dir, experts)
             manifest["files"] = store.file_checksums(tmp, manifest["datasets"])  # what verify and loads check
+            manifest[store.MANIFEST_DIGEST] = store.manifest_digest(manifest)  # an edit by hand is found
             atomic_write_json(tmp / store.MANIFEST, manifest)  # written last
             try:
                 tmp.rename(target)

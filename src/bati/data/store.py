@@ -114,6 +114,9 @@ def read_manifest(path: Path, family: TaskFamily, scale: str, seed: int, noise: 
     redo = f"delete {path} and re-run `{redo_command}`"
     if not isinstance(manifest, dict):
         raise DatasetError(f"{manifest_path} holds a JSON {type(manifest).__name__}, not a manifest; {redo}")
+    if manifest_edited(manifest):
+        raise DatasetError(f"{manifest_path} was edited after the collection (its fields no longer match its "
+                           f"{MANIFEST_DIGEST}); {redo}")
     if manifest.get("format") not in READABLE_FORMATS:
         raise DatasetError(f"{manifest_path}: format is {manifest.get('format')!r}, this bati reads "
                            f"{' or '.join(map(str, READABLE_FORMATS))}; {redo}")
@@ -153,6 +156,21 @@ def sha256_file(file: Path) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
+
+
+MANIFEST_DIGEST = "manifest_sha256"
+
+
+def manifest_digest(manifest: dict) -> str:
+    """sha256 of a manifest's own fields (as JSON with sorted keys, without this digest): an edit by hand of
+    any field (the tasks, the sizes) no longer matches the digest the collection recorded."""
+    fields = {k: v for k, v in json.loads(json.dumps(manifest, default=str)).items() if k != MANIFEST_DIGEST}
+    return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
+
+
+def manifest_edited(manifest: dict) -> bool:
+    """Whether a manifest that records its digest no longer matches it (one from before digests: False)."""
+    return MANIFEST_DIGEST in manifest and manifest[MANIFEST_DIGEST] != manifest_digest(manifest)
 
 
 def file_checksums(path: Path, datasets: dict[str, list[str]]) -> dict[str, dict]:
@@ -250,6 +268,9 @@ def verify_collection(path: Path) -> tuple[str, list[str]]:
         return "damaged", [f"{manifest_path} holds a JSON {type(manifest).__name__}, not a manifest"]
     if not has_checksums(manifest):
         return "unchecked", [f"no checksums (collected before format {CHECKSUM_FORMAT})"]
+    if manifest_edited(manifest):
+        return "damaged", [f"{manifest_path} was edited after the collection (its fields no longer match its "
+                           f"{MANIFEST_DIGEST})"]
     problems = file_problems(path, manifest, checksums=True)
     if problems:
         return "damaged", problems
@@ -260,6 +281,9 @@ def inspect_collection(root: str | Path, family: TaskFamily, scale: str, seed: i
                        tasks: TaskSplit, experts: str = "conditioned") -> tuple[Path, dict]:
     """`bati data info`: the directory and manifest of a complete collection whose files all have their
     recorded sizes (cheap; `verify_collections` reads every byte); DatasetNotFoundError / DatasetError."""
+    from bati.checks import check_integer
+
+    check_integer("seed", seed, low=0)  # a negative seed: no collection has one, and none can be made
     noise = family.validate_noise(noise)
     tasks = tasks.checked(family)
     path = collection_dir(root, family, scale, seed, noise, tasks, experts)
