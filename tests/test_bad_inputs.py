@@ -244,10 +244,10 @@ def remove(name: str) -> Callable:
 
 
 def old_manifest(env: Env, patch, stack) -> None:
-    """A collection made before checksums (format 1): no `files`, no `settings`."""
+    """A collection made before checksums (format 1): no `files`, no `settings`, no digest of its own."""
     path = env.collection / store.MANIFEST
     manifest = json.loads(path.read_text())
-    for key in ("files", "settings"):
+    for key in ("files", "settings", store.MANIFEST_DIGEST):
         del manifest[key]
     manifest["format"] = 1
     path.write_text(json.dumps(manifest))

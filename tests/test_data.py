@@ -511,6 +511,7 @@ def rerecord_checksums(path):
     written, so that the shape checks below, not the integrity check, must catch the mismatch."""
     manifest = json.loads((path / "manifest.json").read_text())
     manifest["files"] = store.file_checksums(path, manifest["datasets"])
+    manifest[store.MANIFEST_DIGEST] = store.manifest_digest(manifest)
     (path / "manifest.json").write_text(json.dumps(manifest))
 
 
@@ -550,6 +551,7 @@ def test_corrupted_files(tiny_copy, capsys):
         load_family_data(FAMILY, root=root)
     manifest = json.loads((tiny_copy / "manifest.json").read_text())
     manifest["train_tasks"][3] = [1.0, 0.0]
+    manifest[store.MANIFEST_DIGEST] = store.manifest_digest(manifest)  # a collector's bug, not a hand edit
     (tiny_copy / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(store.DatasetError, match=r"train_tasks are not PointGoal.split_tasks\(0\)"):
         load_family_data(FAMILY, root=root)
@@ -589,6 +591,7 @@ def test_a_dataset_changed_after_its_array_cache_was_built_is_noticed(tiny_copy)
 def test_a_collection_of_another_env_shape_is_not_already_collected(tiny_copy):
     manifest = json.loads((tiny_copy / "manifest.json").read_text())
     manifest["obs_dim"] = 3  # the env's observations changed since (without a version bump)
+    manifest[store.MANIFEST_DIGEST] = store.manifest_digest(manifest)
     (tiny_copy / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(store.DatasetError, match="obs_dim/action_dim 3/2 do not match the PointGoal env's 2/2"):
         tiny(tiny_copy.parents[1])
