@@ -205,11 +205,9 @@ def _load_checkpoint(out: Path, buffers: TaskBuffers, template):
         buffers.restore(arrays)
         state = flax.serialization.from_bytes(template, arrays["state"].tobytes())
         meta = json.loads(str(arrays["meta"]))
-    rngs = []
-    for saved in meta["rngs"]:
-        rng = np.random.default_rng()
-        rng.bit_generator.state = saved
-        rngs.append(rng)
+    from bati.experts.train import generator_from_state
+
+    rngs = [generator_from_state(saved) for saved in meta["rngs"]]
     keys = jnp.asarray(np.asarray(meta["keys"], dtype=np.uint32))
     return state, keys, rngs, meta["episode"], meta["wall_time"]
 

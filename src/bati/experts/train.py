@@ -242,12 +242,18 @@ def _save_checkpoint(out: Path, state, key, rng, episode, buffer, wall_time: flo
                     state=np.frombuffer(state_to_bytes(state), np.uint8), meta=np.array(json.dumps(meta)))
 
 
+def generator_from_state(state: dict) -> np.random.Generator:
+    """A numpy Generator continuing from a saved `bit_generator.state`."""
+    rng = np.random.default_rng()
+    rng.bit_generator.state = state
+    return rng
+
+
 def _load_checkpoint(out: Path, buffer: ReplayBuffer, template):
     with np.load(out / "checkpoint.npz") as arrays:
         buffer.restore(arrays)
         state = state_from_bytes(template, arrays["state"].tobytes())
         meta = json.loads(str(arrays["meta"]))
-    rng = np.random.default_rng()
-    rng.bit_generator.state = meta["rng"]
+    rng = generator_from_state(meta["rng"])
     key = jax.numpy.asarray(np.asarray(meta["key"], dtype=np.uint32))
     return state, key, rng, meta["episode"], meta["wall_time"]
