@@ -6,7 +6,7 @@ Random data shaped like the family's (no collection needed). For each k: one chu
 compiles, then the median over `--chunks` chunks gives seconds per step of the k-seed program;
 seed-steps/s = k / that; with XLA's count of one seed-step's flops and bytes, the achieved TFLOP/s and TB/s
 (how close the step is to the device's limits). `--precision tensorfloat32|bfloat16` lowers the float32
-matmuls' precision (runs use the default). Prints a Markdown table with the device JAX ran on. Targets (issue: engine):
+matmuls' precision (runs use the default). Prints a Markdown table with the device JAX ran on. Target:
 >= 3x the single-seed rate at paper scale on one H100 through vmapped seeds.
 """
 

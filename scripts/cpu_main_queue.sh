@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The cpu-scale main table (issue 30), one family and one method at a time, in the background:
+# The cpu-scale main table, one family and one method at a time, in the background:
 #   git worktree add ../bg-<commit> <commit>    # the code of a fixed commit (it must not change under a running job)
 #   cd <this checkout> && PYTHONPATH=../bg-<commit>/src nohup nice bash ../bg-<commit>/scripts/cpu_main_queue.sh \
 #       /work/run-data results/cpu/experiments > cpu-queue.log 2>&1 &
@@ -14,7 +14,7 @@
 # (AntDir ER-TRL at the cpu scale: 40.0 ms per step for one seed, 135.6 ms for three; docs/performance.md).
 # Order: claims first. A seed costs 12-16 min on free cores (6.9-7.7 ms per step for BATI, docs/performance.md) and
 # 20-80 min with other work beside (IQL alone ~20 min; CSRO and ER-TRL ~1-1.3 h, Recon and BATI-R ~45 min), so the
-# table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL (issue 28), the AntDir noise ablation's
+# table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL, the AntDir noise ablation's
 # BATI and FOCAL (claim C4, untested at every scale), then phase 1 in two passes over the families: the Oracle (the
 # normaliser), BATI and FOCAL first (claims C1-C2 on five families; BATI-R and BATI-auto are evaluated alongside
 # BATI's run, which is their training too: `bati+bati-r+bati-auto`), with the context-length and ood-tasks
@@ -176,7 +176,7 @@ main_phase() {  # $1: the methods, each on every family (or on the families $2)
 # (BATI and FOCAL, the baseline whose fall on p_test is decided on AntDir) comes first. Then phase 1 in two passes:
 # the claim pair with the Oracle (the normaliser) on every family, so that C1-C2 rest on five families as early as
 # possible, then the other paper methods (Recon first: claim C3), then the ablations' and the noise ablation's other
-# baselines; ER-TRL's part of the noise ablation (issue 28, beyond the paper: it decides no paper claim) after them.
+# baselines; ER-TRL's part of the noise ablation (beyond the paper: it decides no paper claim) after them.
 noise ${NOISE_FIRST:-bati focal}
 main_phase "$phase1a" "AntDir HalfCheetahVel HalfCheetahDir"  # the families whose data is at hand
 # Claims C5 (Table 1: BATI gains from longer contexts, the baselines do not) and C6 (Table 2: only BATI positive on

@@ -1,18 +1,19 @@
-"""This machine's side of a GPU session (issue 29; the device side is scripts/gpu_paper_scale.sh).
+"""Your checkout's side of GPU work (the GPU machine's side is scripts/gpu_paper_scale.sh; docs/gpu.md).
 
-    python scripts/gpu_local.py away       # before the first device call
-    run(command="MODE=start ... bash scripts/gpu_paper_scale.sh", carry=[".whl", ".gpu"], ...)   # then MODE=watch
-    python scripts/gpu_local.py back       # after the last one (also when a call failed)
-    python scripts/gpu_local.py unpack /work/.device/N --logs results/paper/h200-2026-11-27
+    python scripts/gpu_local.py away       # optional, before copying the checkout to the GPU machine
+    MODE=start ... bash scripts/gpu_paper_scale.sh   # there; then MODE=watch, and copy its $OUT folder back
+    python scripts/gpu_local.py back       # after the GPU work (also when it failed)
+    python scripts/gpu_local.py unpack <the copied-back folder> --logs .gpu/logs/<session>
 
-`away` keeps what travels under the device's 64 MiB: it pauses the cpu queue (SIGSTOP: it writes under results/),
-moves results/ out of the checkout (to --stash) and leaves in .gpu/committed/ a slim copy of the committed cells
-of results/paper/experiments (config.json, eval.json, eval.jsonl: what makes a cell finished there; the training
-logs, most of the bytes, stay here). `back` undoes both. `unpack` takes a call's files: its results.tar.gz (every
-result file but checkpoints) and resume-*.tar (the checkpoint of each unfinished run); finished cells not yet
-committed go into results/paper/experiments, the unfinished runs (with their checkpoints) into .gpu/resume/, which
-the next session's first call carries and resumes from instead of step 0, their logs (no checkpoints) and the
-session's logs into --logs, a new folder (one per session: two sessions of a day need two names).
+`away` keeps the copy small: it pauses the cpu queue (SIGSTOP: it writes under results/), moves results/ out of the
+checkout (to --stash) and leaves in .gpu/committed/ a slim copy of the committed cells of results/paper/experiments
+(config.json, eval.json, eval.jsonl: what makes a cell finished there; the training logs, most of the bytes, stay
+here). `back` undoes both. `unpack` takes the files a GPU command packed: its results.tar.gz (every result file but
+checkpoints) and resume-*.tar (the checkpoint of each unfinished run); finished cells not yet committed go into
+results/paper/experiments, the unfinished runs (with their checkpoints) into .gpu/resume/, which the next machine's
+first command copies and resumes from instead of step 0, their logs (no checkpoints) and the GPU work's logs into
+--logs, a new folder outside results/ (one per machine; .gpu/ is not committed: results/ holds finished cells only,
+each recording its device, commit and wall time).
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ COMMITTED = Path("results/paper/experiments")
 SLIM_FILES = ("config.json", "eval.json", "eval.jsonl")
 CHECKPOINT = "checkpoint.msgpack"
 QUEUE_PATTERN = r"cpu_main_queue\.sh|bati\.cli"
-TRAVEL_LIMIT = 64 * 2**20
+COPY_LIMIT_VARIABLE = "BATI_COPY_LIMIT_MIB"
+"""Set it to the size your copy to the GPU machine may have (MiB), if it is limited: `away` warns above it."""
 
 
 class GpuLocalError(Exception):
@@ -104,8 +106,9 @@ def away(root: Path, stash: Path, pause: bool) -> None:
     travels = travel_size(root)
     print(f"results/ moved to {stash}; {len(run_dirs(slim))} committed cell(s) in .gpu/committed; "
           f"{len(pids)} queue process(es) paused; travels ~{travels / 2**20:.1f} MiB with .whl and .gpu")
-    if travels > TRAVEL_LIMIT:
-        print("warning: over the device's 64 MiB: the call will be refused", file=sys.stderr)
+    limit = float(os.environ.get(COPY_LIMIT_VARIABLE) or "inf") * 2**20
+    if travels > limit:
+        print(f"warning: over {limit / 2**20:.0f} MiB ({COPY_LIMIT_VARIABLE}): too much for your copy", file=sys.stderr)
 
 
 def back(root: Path) -> None:
@@ -129,7 +132,7 @@ def back(root: Path) -> None:
 
 
 def travel_size(root: Path) -> int:
-    """Bytes of what a device call would send: tracked and untracked-not-ignored files, plus .whl and .gpu."""
+    """Bytes of what a copy of the checkout would hold: tracked and untracked-not-ignored files, plus .whl and .gpu."""
     listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=root, capture_output=True,
                             text=True).stdout.split("\0")
     total = sum((root / p).stat().st_size for p in listed if p and (root / p).is_file())
@@ -141,7 +144,7 @@ def travel_size(root: Path) -> int:
 def unpack(root: Path, files_at: Path, logs: Path) -> None:
     pack = files_at / "results.tar.gz"
     if not pack.is_file():
-        raise GpuLocalError(f"no {pack}: the call returned no pack")
+        raise GpuLocalError(f"no {pack}: no pack was copied back")
     committed = root / COMMITTED
     if not committed.is_dir():
         raise GpuLocalError(f"{committed} is not there: `back` first")
@@ -199,8 +202,9 @@ def main(argv=None) -> int:
     go.add_argument("--stash", type=Path, default=None, help="where results/ goes (default: ../bati-results-away)")
     go.add_argument("--no-pause", action="store_true", help="leave the cpu queue running (it must not write)")
     verbs.add_parser("back", help="move results/ back and resume the cpu queue")
-    take = verbs.add_parser("unpack", help="a device call's files into results/paper/experiments and .gpu/resume")
-    take.add_argument("files_at", type=Path, help="the reply's files_at folder")
+    take = verbs.add_parser("unpack", help="a GPU command's packs into results/paper/experiments and .gpu/resume")
+    take.add_argument("files_at", type=Path, metavar="folder",
+                      help="the folder copied back from the GPU machine (its results.tar.gz and resume-*.tar)")
     take.add_argument("--logs", type=Path, required=True, help="where the session's logs and partial runs go")
     args = parser.parse_args(argv)
     root = args.root.resolve()

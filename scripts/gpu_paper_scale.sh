@@ -1,45 +1,43 @@
 #!/usr/bin/env bash
-# The paper scale on a lent GPU machine (issue 29), after `bash scripts/gpu_wheels.sh` here. Three modes (MODE):
-#   start   (first device call)  installs the wheels, starts the whole session's work DETACHED (setsid: it outlives
-#           the call and runs while the machine stays warm, i.e. while the next call follows within ~30 s), then
-#           watches it for WATCH_S seconds and packs what is finished into $OUT;
-#   watch   (each later call)    watches the detached work for WATCH_S seconds and packs again;
-#   fg      (a CPU dry run)      the same work in the foreground, stopped at BUDGET_S, then packed.
-#   pack    (tests)              packs RESULTS into OUT, as each call ends.
-#   python scripts/gpu_local.py away                  # here: results/ out of the checkout (64 MiB travel limit)
-#   run(command="MODE=start FAMILIES='HalfCheetahDir HalfCheetahVel' FILL=kuhn WATCH_S=555 bash scripts/gpu_paper_scale.sh",
-#       carry=[".whl", ".gpu"], timeout_s=600)
-#   run(command="MODE=watch WATCH_S=<budget_left_s - 70> bash scripts/gpu_paper_scale.sh", carry=[".whl", ".gpu"],
-#       timeout_s=<budget_left_s - 30>)                                             # within 30 s of the last reply
-#   give_back(); python scripts/gpu_local.py back
-#   python scripts/gpu_local.py unpack <files_at> --logs results/paper/<device>-<date>
-# The working tree that travels must stay under 64 MiB with the 27 MB of wheels: `away` moves results/ out (the
-# committed paper cells travel as a slim copy in .gpu/committed) and `unpack` keeps the checkpoints of unfinished
-# runs in .gpu/resume, which the next session's calls carry and resume from.
+# The paper scale on a GPU machine that may be taken away at any time (docs/gpu.md). Without a package index there,
+# run `bash scripts/gpu_wheels.sh` first where there is one and copy .whl/ along. Modes (MODE):
+#   start   (first command)  installs the wheels, starts the whole work DETACHED (setsid: it outlives the command and
+#           runs as long as the machine does), then watches it for WATCH_S seconds and packs what is finished into $OUT;
+#   watch   (each later one) watches the detached work for WATCH_S seconds and packs again;
+#   fg      (a machine that stays, or a CPU dry run)  the same work in the foreground, stopped at BUDGET_S, then packed;
+#   pack    (tests)          packs RESULTS into OUT, as each command ends.
+#   python scripts/gpu_local.py away                  # here, optional: results/ out of the checkout (a smaller copy)
+#   MODE=start FAMILIES='HalfCheetahDir HalfCheetahVel' FILL=kuhn WATCH_S=555 bash scripts/gpu_paper_scale.sh
+#   MODE=watch WATCH_S=<seconds you choose> bash scripts/gpu_paper_scale.sh          # as often as the machine lives
+#   python scripts/gpu_local.py back                  # here, after the GPU work (also when it failed)
+#   python scripts/gpu_local.py unpack <the copied-back $OUT folder> --logs <a new folder>
+# What is copied to the machine stays small: `away` moves results/ out (the committed paper cells go along as a
+# slim copy in .gpu/committed) and `unpack` keeps the checkpoints of unfinished runs in .gpu/resume, which the next
+# machine's first command copies into its results and resumes from.
 # The work: BENCH=1 first measures seed-steps/s at k = BENCH_SEEDS (default 3, chunks of 100 steps: a job's) (benchmarks/seed_throughput.py, pinned to core 0
-# while the first family's data is collected on the other cores; the experiment waits for it: on 2026-11-25 its
-# compiles took over 9 minutes); then per family: collect its paper data over all cores (the next family's
+# while the first family's data is collected on the other cores; the experiment waits for it: its compiles have
+# taken over 9 minutes); then per family: collect its paper data over all cores (the next family's
 # collection runs beside the current experiment, niced, on a quarter of the cores), and `bati experiment E
 # --scale SCALE` for each E of EXPERIMENTS (default main) with METHODS x SEEDS, one job at a time (WORKERS; a job is one method's seeds vmapped in one
-# program), its evaluation's MuJoCo envs stepped by EVAL_WORKERS processes. Measured on an H100 (2026-11-25,
-# docs/performance.md): three jobs side by side ran 4.3-5.6 ms per step each against 0.9 ms for one alone (the
+# program), its evaluation's MuJoCo envs stepped by EVAL_WORKERS processes. Measured on an H100 (docs/performance.md):
+# three jobs side by side ran 4.3-5.6 ms per step each against 0.9 ms for one alone (the
 # processes time-slice the GPU), while one evaluation of 3 seeds took 16 s on one core: so one job at a time, and
 # evaluation over the spare cores.
-# Each call's pack is $OUT/results.tar.gz (every result file but checkpoints, plus session.log and bench.md) and one
-# $OUT/resume-<i>.tar per unfinished run's checkpoint, renewed each time a run finishes, so a call stopped at its
-# limit still returns the runs finished before. Here: `gpu_local.py unpack` (above), then `bati experiment E --scale
+# Each command's pack is $OUT/results.tar.gz (every result file but checkpoints, plus session.log and bench.md) and one
+# $OUT/resume-<i>.tar per unfinished run's checkpoint, renewed each time a run finishes, so a command stopped before
+# its end still returns the runs finished before. Here: `gpu_local.py unpack` (above), then `bati experiment E --scale
 # paper --report-only --out-dir results/paper/experiments` for each E of EXPERIMENTS, and `bati claims`.
 # FILL=kuhn (an experiment): while the first family's data is collected, FILL's family (FILL_FAMILY, default
 # KuhnPoker) is collected on FILL_WORKERS cores (default 4; the family gets the others) and trains FILL's methods
-# one job at a time on the idle GPU. On one core Kuhn's data took 70.8 s, as long as HalfCheetahDir's on 15
-# (2026-11-28, H200), so no Kuhn job began; on 4 it should take ~20 s.
+# one job at a time on the idle GPU. On one core Kuhn's data took 70.8 s, as long as HalfCheetahDir's on 15 (H200),
+# so no Kuhn job began; on 4 it took 28.1 s.
 # CPU dry run: MODE=fg SCALE=quick METHODS=bati SEEDS="0 1" SETTINGS="steps=200" DATA=... bash this file.
 set -u
 mode=${MODE:-fg}
 scale=${SCALE:-paper}
 families=${FAMILIES:-AntDir}
 # The claim methods first (C1-C3 compare BATI with these four), then the references; 3 seeds (the claims' minimum):
-# a 15-minute session finishes 2-3 such jobs (docs/performance.md), and the committed cells are skipped. BATI-R and
+# such a job takes 1.5-3 minutes on an H100 or H200 (docs/performance.md), and the committed cells are skipped. BATI-R and
 # BATI-auto cost only evaluations where BATI's job is pending too (evaluated alongside it: docs/methods.md).
 methods=${METHODS:-"bati focal csro recon unicorn oracle bati-r bati-auto no-context"}
 # EXPERIMENTS: `bati experiment` names run per family in this order (default main); each runs the methods of METHODS
@@ -63,7 +61,7 @@ mkdir -p "$out" "$results"
 install() {
   if ! python3 -c "import mujoco, gymnasium, minari, tyro, rliable" 2>/dev/null; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
-      .whl/*.whl || { echo "no wheels to install: run scripts/gpu_wheels.sh here and carry .whl"; exit 2; }
+      .whl/*.whl || { echo "no wheels to install: run scripts/gpu_wheels.sh where there is an index and copy .whl along"; exit 2; }
     export PYTHONPATH=/tmp/site
   fi
   export PYTHONPATH=$PWD/src${PYTHONPATH:+:$PYTHONPATH} MUJOCO_GL=${MUJOCO_GL:-glfw} \
@@ -133,12 +131,12 @@ run_experiment() {  # $1 experiment, $2 family, then its methods: one `bati expe
   return $rc
 }
 
-fill() {  # $1: the pid of the first family's collection. The GPU idles meanwhile (~100-135 s of a 15-minute session),
+fill() {  # $1: the pid of the first family's collection. The GPU idles meanwhile (~100-135 s for a MuJoCo family),
   # so FILL's experiment on FILL_FAMILY (default KuhnPoker, whose data takes ~70 s on one core) runs one method's
   # job at a time until that collection ends; the first family then waits for the job at hand only.
   local family=${FILL_FAMILY:-KuhnPoker} method rc
   collect "$family" "$fill_workers"; rc=$?; echo "$family data for $FILL (rc $rc) after $(( $(date +%s) - start )) s"
-  # one line and no jobs when the data cannot be had (2026-11-27: OpenSpiel missing, 8 jobs failed one by one)
+  # one line and no jobs when the data cannot be had (without OpenSpiel, 8 jobs once failed one by one)
   [ "$rc" -eq 0 ] || { tail -1 "$results/collect-$family.log"; echo "no $FILL fill"; return; }
   for method in $(chosen_methods "$FILL" "$family"); do
     kill -0 "$1" 2> /dev/null || break
@@ -147,7 +145,7 @@ fill() {  # $1: the pid of the first family's collection. The GPU idles meanwhil
 }
 
 seed_results() {  # the committed cells of this scale count as finished here too: the sweep skips them; the unfinished
-  # runs of earlier sessions (.gpu/resume: scripts/gpu_local.py unpack) resume from their checkpoints
+  # runs of earlier machines (.gpu/resume: scripts/gpu_local.py unpack) resume from their checkpoints
   local committed=${COMMITTED:-results/$scale/experiments} resume=${RESUME:-.gpu/resume}
   [ -z "${COMMITTED:-}" ] && [ -d .gpu/committed ] && committed=.gpu/committed  # gpu_local.py away's slim copy
   if [ -d "$committed" ]; then
@@ -162,7 +160,7 @@ seed_results() {  # the committed cells of this scale count as finished here too
 
 finished() { find "$results" -name eval.json | wc -l; }
 
-pack() {  # one pack per call, replaced atomically: a call stopped at its limit still returns the last one
+pack() {  # one pack at a time, replaced atomically: a command stopped before its end still leaves the last one
   local pack="$out/results.tar.gz"
   # tar exits 1 when a log grew while it was read (a running job's metrics): the pack is still whole
   tar czf "$pack.part" --warning=no-file-changed --exclude=checkpoint.msgpack --exclude='*.lock' --exclude='.*.tmp' \
@@ -173,9 +171,9 @@ pack() {  # one pack per call, replaced atomically: a call stopped at its limit 
     "checkpoint(s) of unfinished runs, after $(( $(date +%s) - start )) s"
 }
 
-pack_resume() {  # the checkpoint of each unfinished run, a file each (~4-5 MB at the paper scale; the device returns
-  # 8 files of 16 MiB at most), its logs being in the results pack: the next session carries them back
-  # (gpu_local.py unpack puts them in .gpu/resume) and resumes those runs instead of restarting them at step 0
+pack_resume() {  # the checkpoint of each unfinished run, a file each (~4-5 MB at the paper scale: small files to copy
+  # back), its logs being in the results pack: the next machine gets them back (gpu_local.py unpack puts them in
+  # .gpu/resume) and resumes those runs instead of restarting them at step 0
   local i=0 checkpoint
   while IFS= read -r checkpoint; do
     [ -e "$(dirname "$checkpoint")/eval.json" ] && continue

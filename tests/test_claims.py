@@ -304,3 +304,17 @@ def test_a_family_whose_runs_are_too_few_to_rank_is_named_apart(tmp_path):
     assert c8.families == ["AntDir", "HopperParam"] and c8.thin == ["HopperParam"] and c8.verdict == "partly"
     assert claims_module.every_scale(findings, c8.claim) == ("cpu: partly (AntDir; 1 of 5 families; "
                                                              "fewer than 3 seeds: HopperParam)")
+
+
+def test_the_summary_row_reads_convergence_at_the_verdicts_own_data(tmp_path):
+    """A per-task experts' source tested after the default one must not lend its convergence to the row."""
+    c1 = next(c for c in CLAIMS if c.name == "C1")
+    per_task = next(s for s in SOURCES if "experts=per-task" in s.settings and s.scale == "cpu")
+
+    def finding(source, moving):
+        return claims_module.Finding(c1, source, [], "partly", 3, ["AntDir"], ["abc"], ["cpu"], 60.0, moving, 1)
+
+    findings = [finding(CPU, []), finding(per_task, [("bati on HalfCheetahDir falling", "-0.3")])]
+    row = next(line for line in claims_module.claims_markdown(findings, "bati claims").splitlines()
+               if line.startswith("| C1"))
+    assert "| cpu | yes (1 of 1 cell flat) |" in row  # the default data's cell, not the per-task one still falling

@@ -124,6 +124,8 @@ def test_plan_is_reproducible_and_seed_dependent():
 def test_the_recorded_commit_says_when_the_code_differs_from_it(tmp_path):
     import subprocess
 
+    from bati.io import uncommitted_changes
+
     def git(*args):
         subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
 
@@ -134,12 +136,12 @@ def test_the_recorded_commit_says_when_the_code_differs_from_it(tmp_path):
     git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "first")
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=tmp_path, capture_output=True,
                           text=True).stdout.strip()
-    assert git_commit(tmp_path) == head
+    assert git_commit(tmp_path) == head and not uncommitted_changes(tmp_path)
     (tmp_path / "code.py").write_text("x = 2\n")  # an edit not committed: the commit alone is not the code
-    assert git_commit(tmp_path) == f"{head}-dirty"
+    assert git_commit(tmp_path) == head and uncommitted_changes(tmp_path)  # the record names the commit alone
     (tmp_path / "code.py").write_text("x = 1\n")
     (tmp_path / "new.py").write_text("y = 1\n")  # a new file counts too
-    assert git_commit(tmp_path) == f"{head}-dirty"
+    assert uncommitted_changes(tmp_path)
 
 
 def test_a_short_commit_keeps_its_dirty_mark():
@@ -153,13 +155,24 @@ def test_the_running_code_commit_is_read_once_per_process(monkeypatch):
     import bati.io as io
 
     reads = []
-    monkeypatch.setattr(io, "_read_commit", lambda directory: reads.append(directory) or f"c{len(reads)}")
-    io._running_code_commit.cache_clear()
+    monkeypatch.setattr(io, "_read_state", lambda directory: (reads.append(directory) or f"c{len(reads)}", False))
+    io._running_code_state.cache_clear()
     try:
         assert git_commit() == "c1" and git_commit() == "c1"  # a commit made meanwhile is not the running code
-        assert reads == [Path(io.__file__).parent]
+        assert io.code_record() == {"commit": "c1"} and reads == [Path(io.__file__).parent]
     finally:
-        io._running_code_commit.cache_clear()
+        io._running_code_state.cache_clear()
+
+
+def test_a_record_flags_code_that_differs_from_its_commit(monkeypatch):
+    import bati.io as io
+
+    monkeypatch.setattr(io, "_read_state", lambda directory: ("abc1234", True))
+    io._running_code_state.cache_clear()
+    try:
+        assert io.code_record() == {"commit": "abc1234", "uncommitted_changes": True}
+    finally:
+        io._running_code_state.cache_clear()
 
 
 # --- the collected data -----------------------------------------------------------------------

@@ -151,7 +151,7 @@ def test_spec_filters_and_seed_override():
     (["experiment", "tabel4"], "unknown experiment 'tabel4'"),
     (["experiment", "splits", "--settings", "n_train_tasks=15"], "sets n_train_tasks itself"),
     (["experiment", "main", "--methods", "bati", "bogus"], "has no method 'bogus'"),
-    (["experiment", "noise", "--families", "HopperParam"], "has no family 'HopperParam'"),
+    (["experiment", "ood-tasks", "--families", "HopperParam"], "has no family 'HopperParam'"),
     (["experiment", "main", "--settings", "steps=0"], "steps must be an integer >= 1"),
     (["experiment", "main", "--seeds", "-1"], "seeds must be distinct integers >= 0"),
     (["experiment", "main", "--seeds", "1", "1"], "seeds must be distinct integers >= 0"),
@@ -278,8 +278,9 @@ def test_vs_figure_puts_each_column_at_its_number_and_orders_columns_numerically
 
 
 def test_a_bati_runs_likelihood_split_is_saved_before_the_next_job_starts(tmp_path, monkeypatch):
-    """The split needs the run's checkpoint, which a lent GPU machine keeps only until it goes back: it is written
-    as each job ends, not after the whole sweep (at the paper scale no BATI run had one: every session ended first).
+    """The split needs the run's checkpoint, which a GPU machine that may be taken away keeps only while it lives: it
+    is written as each job ends, not after the whole sweep (at the paper scale no BATI run had one: every machine
+    went away first).
     No training here: the jobs write their eval.json, the split records its call."""
     from bati.experiments import specs as specs_module
     from bati.experiments import sweep as sweep_module

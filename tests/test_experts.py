@@ -72,8 +72,9 @@ def test_card_reports_returns_on_train_and_test_tasks_and_the_gap(trained):
 
 
 def test_missing_expert_and_mismatched_run_directory_are_clear_errors(tmp_path, trained):
-    with pytest.raises(FileNotFoundError, match="bati experts train --family PointGoal"):
+    with pytest.raises(FileNotFoundError, match="bati experts train --family PointGoal") as err:
         load("PointGoal", tmp_path)
+    assert "--zoo-dir runs/experts/PointGoal/zoo" in str(err.value)  # where training exports it, how to use it
     config = ExpertTrainConfig("PointGoal", total_steps=400, out_dir=trained / "straight", seed=3,
                                export_dir=tmp_path, **SMALL)
     with pytest.raises(ValueError, match="seed: 0 there, 3 now"):

@@ -52,6 +52,26 @@ def test_registering_needs_a_record_and_a_new_name(line_goal):
     register_family(example_family.LineGoalFamily, example_family.LineGoalEnv)  # again: a no-op
 
 
+class WideGoalEnv(example_family.LineGoalEnv):
+    """Its observation space says 3 numbers, its observations are 1."""
+
+    def __init__(self, task, noise=None):
+        super().__init__(task, noise)
+        self.observation_space = gym.spaces.Box(-2.0, 2.0, (3,), np.float64)
+
+
+def test_a_family_whose_env_breaks_its_observation_space_is_refused_at_registration():
+    import dataclasses
+
+    class WideGoal(example_family.LineGoalFamily):
+        record = dataclasses.replace(example_family.LineGoalFamily.record, name="WideGoal")
+
+    with pytest.raises(ValueError, match=r"bati/WideGoal-v0: reset\(\) returns observations of shape \(1,\) but its "
+                                         r"observation_space has shape \(3,\)"):
+        register_family(WideGoal, WideGoalEnv)
+    assert "WideGoal" not in family_names() and "bati/WideGoal-v0" not in gym.registry
+
+
 @pytest.fixture(scope="module")
 def line_goal_data(line_goal, tmp_path_factory):
     root = tmp_path_factory.mktemp("line-goal") / "data"
@@ -93,6 +113,32 @@ def test_the_transferable_experiments_plan_a_registered_family(line_goal, tmp_pa
     assert {p.eval_context_length for probes in context.probes.values() for p in probes} == {c // 4, c, 2 * c}
     with pytest.raises(ExperimentError, match="a family of your own runs in: main, noise, context-length, splits"):
         plan("ood-tasks")
+
+
+def test_an_experiment_plans_runs_and_reports_a_family_of_your_own_with_the_papers(line_goal, line_goal_data,
+                                                                                   tmp_path):
+    from bati.experiments.experiment import ExperimentJob, run_experiment_job
+
+    job = ExperimentJob("main", families=("LineGoal",), methods=("oracle",), out_dir=tmp_path / "results",
+                        data_root=line_goal_data, zoo_dir=tmp_path / "zoo",
+                        settings=("steps=10", "eval_every=10", "log_every=5", "task_batch=4", "batch_size=8",
+                                  "episodes_per_task=4", "context_episodes=2"))
+    outcome = run_experiment_job(job, show_progress=False)
+    assert not outcome.failures
+    report = (outcome.report_dir / "report.md").read_text()
+    # planned and counted with the paper's five families (55 cells) plus LineGoal's 11, one of them finished
+    assert "cells finished: 1 of 66" in report and "LineGoal" in report.split("**p test return")[1].splitlines()[2]
+    config = json.loads(next((tmp_path / "results" / "LineGoal").rglob("config.json")).read_text())
+    assert config["zoo_dir"] == str(tmp_path / "zoo")  # --zoo-dir reaches the cells (not part of their identity)
+    assert "--zoo-dir" in job.command_line(whole=True)
+
+
+def test_main_and_noise_plan_pointgoal_the_default_family_of_bati_run(tmp_path):
+    from bati.experiments.specs import get_spec, plan_experiment
+
+    for name in ("main", "noise"):
+        cells = plan_experiment(get_spec(name), "quick", tmp_path, families=("PointGoal",)).cells
+        assert cells and {c.config.family for c in cells} == {"PointGoal"}
 
 
 def test_the_family_rules_give_the_paper_settings_back_on_the_paper_families():

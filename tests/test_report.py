@@ -446,3 +446,14 @@ def test_the_drift_over_the_scored_window_says_whether_a_number_still_moves(resu
     assert drifts == pytest.approx([-0.048, -0.048, 0.048])
     hopper = table(report, "HopperParam")  # old files without references: raw returns, -12 / +12 / -12
     assert row(hopper, "bati")["p_test_drift"] == pytest.approx(-4.0)
+
+
+def test_runs_from_code_with_uncommitted_changes_are_flagged(results, tmp_path):
+    flagged = results / "PointGoal" / "bati-seed0" / "eval.json"
+    summary = json.loads(flagged.read_text())
+    flagged.write_text(json.dumps({**summary, "uncommitted_changes": True}))
+    older = results / "PointGoal" / "bati-seed1" / "eval.json"  # records before the flag: a "-dirty" commit
+    older.write_text(json.dumps({**json.loads(older.read_text()), "commit": "abc1234-dirty"}))
+    assert sorted(r.uncommitted_changes for r in load_runs(results)).count(True) == 2
+    report = build_report(results, tmp_path / "report")
+    assert "**2 run(s) from code with uncommitted changes**" in report["markdown"]

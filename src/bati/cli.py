@@ -468,9 +468,36 @@ class Claims:
         console.print(f"claims page: {out}")
 
 
+@dataclass
+class Results:
+    """The committed results indexed: results/README.md, docs/results.md and the README's headline table."""
+
+    root: Path = Path(".")
+    """The project directory whose results/ holds the studies."""
+    reports: bool = False
+    """First write every experiment study's report again from its cells (report-only)."""
+    pack: bool = False
+    """First pack every finished run's metrics.jsonl into metrics.jsonl.gz (floats to 4 significant digits):
+    for a results folder kept in version control."""
+
+    def run(self) -> None:
+        from bati.experiments.index import pack_results, regenerate_reports, write_results
+
+        if not (self.root / "results").is_dir():
+            raise UserError(f"{self.root / 'results'} is not a directory: --root names the project directory")
+        if self.pack:
+            files, saved = pack_results(self.root)
+            console.print(f"packed {files} metrics.jsonl file(s), {saved / 2**20:.1f} MiB saved")
+        if self.reports:
+            for folder in regenerate_reports(self.root):
+                console.print(f"report: {folder}/report.md")
+        for path in write_results(self.root):
+            console.print(f"written: {path}")
+
+
 COMMANDS = {"envs": Envs, "experts": Experts, "data": Data, "train": Train, "run": Run, "sweep": Sweep,
             "experiment": Experiment, "likelihood": Likelihood, "infer": Infer, "report": Report,
-            "claims": Claims}
+            "claims": Claims, "results": Results}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -33,7 +33,7 @@ from bati.data import FamilyData, sample_contexts
 from bati.data.batch import TRANSITION_FIELDS
 from bati.errors import BatiError
 from bati.evaluate import calibrate as calibrate_method
-from bati.io import git_commit, read_run_config
+from bati.io import code_record, read_run_config
 from bati.train import open_run
 
 QUANTILE = 0.95
@@ -126,7 +126,7 @@ def novelty(run_dir: Path, repeats: int = 5, quantile: float = QUANTILE, seed: i
         out[f"{source}_flagged"] = float(np.mean(scores[source] > threshold))
         out[f"{source}_score_mean"] = float(scores[source].mean())
     out["p_test_vs_p_train_auroc"] = auroc(scores["p_test"], scores["p_train"])
-    out.update(commit=git_commit(), wall_time_s=round(time.perf_counter() - start, 2))
+    out.update(**code_record(), wall_time_s=round(time.perf_counter() - start, 2))
     return out
 
 

@@ -100,40 +100,51 @@ def _json_default(value: Any) -> Any:
 
 
 def git_commit(directory: Path | None = None) -> str:
-    """Short commit of the code under `directory`, with "-dirty" appended where its files differ from it (edits
-    not committed: the commit alone would not give the run back); "unknown" outside a git checkout.
+    """Short commit of the code under `directory`; "unknown" outside a git checkout. Whether the files differ
+    from it (edits not committed: the commit alone would not give the run back) is `uncommitted_changes`;
+    records take both from `code_record`.
 
     Without `directory`: the running code's commit (the package's directory), read once per process, at the
     first call (`bati`'s commands make it at their start): a process runs the code it loaded, so a commit made
     while a long run trains must not be recorded as the code of its results."""
-    if directory is None:
-        return _running_code_commit()
-    return _read_commit(Path(directory))
+    return (_running_code_state() if directory is None else _read_state(Path(directory)))[0]
+
+
+def uncommitted_changes(directory: Path | None = None) -> bool:
+    """Whether the code under `directory` (default: the running package, read once) differs from its commit."""
+    return (_running_code_state() if directory is None else _read_state(Path(directory)))[1]
+
+
+def code_record() -> dict:
+    """The running code as a record states it: {"commit": ...}, with "uncommitted_changes": true where the
+    package's files differ from that commit (a report flags such runs)."""
+    commit, changed = _running_code_state()
+    return {"commit": commit, **({"uncommitted_changes": True} if changed else {})}
 
 
 def short_commit(commit: str) -> str:
-    """A recorded commit for a report line: its hash cut to 12 characters (older runs recorded full hashes),
-    "-dirty" kept."""
+    """A recorded commit for a report line: its hash cut to 12 characters (older runs recorded full hashes;
+    older records marked uncommitted changes with "-dirty", kept)."""
     head, dirty, _ = commit.partition("-dirty")
     return head[:12] + dirty
 
 
 @functools.cache
-def _running_code_commit() -> str:
-    return _read_commit(Path(__file__).parent)
+def _running_code_state() -> tuple[str, bool]:
+    return _read_state(Path(__file__).parent)
 
 
-def _read_commit(directory: Path) -> str:
+def _read_state(directory: Path) -> tuple[str, bool]:
     try:
         def git(*args):
             return subprocess.run(["git", *args], capture_output=True, text=True, cwd=directory, timeout=5).stdout.strip()
 
         head = git("rev-parse", "--short", "HEAD")
         if not head:
-            return "unknown"
-        return head + ("-dirty" if git("status", "--porcelain", "--", ".") else "")
+            return "unknown", False
+        return head, bool(git("status", "--porcelain", "--", "."))
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        return "unknown", False
 
 
 def check_run_config(path: Path, config: dict, identity: tuple[str, ...], differing=None) -> None:
@@ -164,7 +175,7 @@ def read_jsonl_lines(path: str | Path, require: tuple[str, ...] = ()) -> list[tu
     from an interrupted append: ValueError naming the file and the line. Blank lines are skipped.
     """
     path = Path(path)
-    lines = path.read_bytes().decode("utf-8", errors="replace").split("\n")
+    lines = _log_bytes(path).decode("utf-8", errors="replace").split("\n")
     numbered = [(n, line) for n, line in enumerate(lines, 1) if line.strip()]
     out = []
     for i, (number, line) in enumerate(numbered):
@@ -184,6 +195,47 @@ def read_jsonl_lines(path: str | Path, require: tuple[str, ...] = ()) -> list[tu
                              "fix or delete that line") from err
         out.append((line, record))
     return out
+
+
+def _log_bytes(path: Path) -> bytes:
+    """A log's bytes: the file, or its packed copy (`pack_jsonl`) where only that one is kept."""
+    packed = path.with_name(path.name + ".gz")
+    if not path.exists() and packed.exists():
+        import gzip
+
+        return gzip.decompress(packed.read_bytes())
+    return path.read_bytes()
+
+
+def log_exists(path: str | Path) -> bool:
+    """Whether a JSONL log is there, plain or packed."""
+    path = Path(path)
+    return path.exists() or path.with_name(path.name + ".gz").exists()
+
+
+PACK_DIGITS = 4
+"""Significant digits a packed log keeps of each float (steps and other integers are kept whole)."""
+
+
+def pack_jsonl(path: str | Path, digits: int = PACK_DIGITS) -> Path:
+    """Replace a finished run's JSONL log by `<name>.gz`: its records with every float rounded to `digits`
+    significant digits (a wall-time clock to 0.1 s), gzipped. `read_jsonl` reads the packed copy where the
+    plain file is gone. For a results folder kept in version control (about 30x smaller); a log still being
+    appended to must not be packed. The packed copy is written before the plain file is removed."""
+    import gzip
+
+    path = Path(path)
+
+    def rounded(key, value):
+        if isinstance(value, float) and np.isfinite(value):
+            return round(value, 1) if key == "wall_time" else float(f"{value:.{digits}g}")
+        return value
+
+    text = "".join(json.dumps({k: rounded(k, v) for k, v in record.items()}) + "\n" for record in read_jsonl(path))
+    packed = path.with_name(path.name + ".gz")
+    atomic_write_bytes(packed, gzip.compress(text.encode(), compresslevel=9, mtime=0))
+    path.unlink()
+    return packed
 
 
 def read_jsonl(path: str | Path, require: tuple[str, ...] = ()) -> list[dict]:

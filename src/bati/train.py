@@ -44,7 +44,7 @@ from bati.io import (
     atomic_write_text,
     check_directory,
     check_run_config,
-    git_commit,
+    code_record,
     hold_lock,
     read_jsonl,
     read_jsonl_lines,
@@ -291,7 +291,7 @@ def _train_claimed(configs: list[TrainConfig], show_progress: bool, references: 
                     sink.close()
     if references is None and not config.datasets:
         references = reference_returns(data, family=inputs.family, expert=inputs.expert)
-    session = {"device": describe_device(), "jax_version": jax.__version__, "commit": git_commit(),
+    session = {"device": describe_device(), "jax_version": jax.__version__, **code_record(),
                "wall_time_s": round(time.perf_counter() - start, 2)}
     recorded = {k: data.manifest[k] for k in ("n_episodes", "n_context_episodes", "transitions", "transitions_read",
                                               "tasks") if k in data.manifest}
@@ -600,7 +600,7 @@ def _check_run_dir(out: Path, config: TrainConfig) -> None:
     """A run directory belongs to one resolved config: refuse to resume a run that differs in any setting."""
     current = config.record()
     identity = tuple(k for k in current if k not in NOT_IDENTITY)
-    runtime = {"device": describe_device(), "jax_version": jax.__version__, "commit": git_commit()}
+    runtime = {"device": describe_device(), "jax_version": jax.__version__, **code_record()}
     check_run_config(out / "config.json", {**current, "runtime": runtime}, identity, differing_settings)
 
 

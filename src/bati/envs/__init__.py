@@ -87,14 +87,42 @@ def register_family(family_class: type[TaskFamily], env_entry_point) -> None:
     name = record.name
     if name in _FAMILIES or _REGISTERED.get(name, family_class) is not family_class:
         raise ValueError(f"a family called {name!r} already exists; give yours another name")
+    if _REGISTERED.get(name) is family_class:
+        return
     if isinstance(env_entry_point, type):
         env_entry_point = f"{env_entry_point.__module__}:{env_entry_point.__qualname__}"
     if not isinstance(env_entry_point, str):
         raise TypeError(f"env_entry_point must be the env class or 'module:Class', got {env_entry_point!r}")
-    _REGISTERED[name] = family_class
     env_id = f"bati/{name}-v0"
     if env_id not in gym.registry:
         gym.register(id=env_id, entry_point=env_entry_point, max_episode_steps=record.episode_length)
+    try:
+        check_spaces(family_class(), env_id)
+    except Exception:
+        gym.registry.pop(env_id, None)  # a family whose env breaks its own spaces is not registered
+        raise
+    _REGISTERED[name] = family_class
+
+
+def check_spaces(family: TaskFamily, env_id: str) -> None:
+    """One reset and one step of the family's env on one of its tasks: its observations must have the
+    observation space's shape and its action space must be a Box (every method and the SAC expert size their
+    networks and buffers from the spaces). ValueError naming the env and both shapes otherwise."""
+    import numpy as np
+
+    env = gym.make(env_id, task=family.sample_tasks(1, seed=0)[0], noise=0.0, disable_env_checker=True)
+    try:
+        if not isinstance(env.action_space, gym.spaces.Box):
+            raise ValueError(f"{env_id}: its action_space is {env.action_space}, not a gymnasium.spaces.Box")
+        expected = env.observation_space.shape
+        obs, _ = env.reset(seed=0)
+        after_step = env.step(env.action_space.sample())[0]
+        for when, observation in (("reset", obs), ("step", after_step)):
+            if np.shape(observation) != expected:
+                raise ValueError(f"{env_id}: {when}() returns observations of shape {np.shape(observation)} but its "
+                                 f"observation_space has shape {expected}; make them agree (docs/extending.md)")
+    finally:
+        env.close()
 
 
 def get_family(name: str) -> TaskFamily:

@@ -538,7 +538,7 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
              "| --- | --- | --- | --- | --- | --- |"]
     for claim in CLAIMS:
         verdict, scale = overall(findings, claim)
-        tested = _tested(findings, claim)
+        tested = [f for f in _tested(findings, claim) if not _per_task(f.source)]  # the verdict's own scale
         lines.append(f"| {claim.name}: {claim.text} | {claim.source} | **{verdict}** | {scale} | "
                      f"{converged_text(tested[-1], short=True) if tested else '-'} | {every_scale(findings, claim)} |")
     for claim in CLAIMS:

@@ -37,6 +37,9 @@ class ExperimentJob:
     """Results directory shared by the experiments (default: results/<scale>/experiments); the report goes
     to OUT_DIR/<name>/."""
     data_root: Path = Path("data")
+    zoo_dir: Path | None = None
+    """Where the experts of the families are (default: the shipped ones); a family of your own's
+    `bati experts train` exports to runs/experts/<family>/zoo."""
     workers: int = 1
     """Jobs at a time (local: processes; several may share one GPU)."""
     backend: Literal["local", "ray"] = "local"
@@ -53,8 +56,8 @@ class ExperimentJob:
             value = getattr(self, name)
             if value:
                 parts += [f"--{name}", *map(str, value)]
-        for name, default in (("out_dir", None), ("data_root", Path("data")), ("workers", 1), ("backend", "local"),
-                              ("address", None)):
+        for name, default in (("out_dir", None), ("data_root", Path("data")), ("zoo_dir", None), ("workers", 1),
+                              ("backend", "local"), ("address", None)):
             value = getattr(self, name)
             if value != default:
                 parts += [f"--{name.replace('_', '-')}", str(value)]
@@ -80,10 +83,15 @@ def run_experiment_job(job: ExperimentJob, show_progress: bool = True,
     require_rliable()  # the report at the end needs it: say so before hours of training
     spec = get_spec(job.name)
     out = job.out_dir or default_out_dir(job.scale)
-    plan = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=job.settings, methods=job.methods,
+    settings = job.settings + ((f"zoo_dir={job.zoo_dir}",) if job.zoo_dir is not None else ())
+    plan = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=settings, methods=job.methods,
                            families=job.families, data_root=job.data_root)
-    # The report covers every cell of the experiment at this scale, finished by this command or another.
-    whole = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=job.settings, data_root=job.data_root)
+    # The report covers every cell of the experiment at this scale, finished by this command or another: the
+    # spec's families and any other family this command names.
+    paper_families = tuple(dict.fromkeys(f for part in spec.parts for f in part.families))
+    others = tuple(f for f in job.families if f not in paper_families)
+    whole = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=settings, data_root=job.data_root,
+                            families=paper_families + others if others else ())
     command = job.command_line(whole=True)
     if job.report_only:  # reads finished cells only, so it needs no lock: a sweep may be running
         return ExperimentOutcome(experiment_report(whole, out / spec.name, command=command), out / spec.name)

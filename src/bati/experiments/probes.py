@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from bati.errors import BatiError
-from bati.io import atomic_save_npz, atomic_write_json, git_commit
+from bati.io import atomic_save_npz, atomic_write_json, code_record
 
 
 class ProbeError(BatiError, ValueError):
@@ -162,7 +162,7 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
             raise ProbeError(str(err)) from err
         collected = collector.run(states, keys, seeds)
         out.update(collected.summary(), train_tasks=data.train_tasks, test_tasks=data.test_tasks,
-                   commit=git_commit(), wall_time_s=round(time.perf_counter() - start, 2))
+                   **code_record(), wall_time_s=round(time.perf_counter() - start, 2))
         path = probe_path(run_dir, probe)
         atomic_save_npz(path.with_name(f"{probe.name}-latents.npz"), final=collected.latents[0],
                         prior=collected.prior_latents[0], reference=collected.reference[0])
@@ -177,7 +177,7 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
         out[f"{source}_return_std"] = float(returns.std())
         out[f"{source}_returns"] = returns.round(3).tolist()
         out[f"{source}_inference_error"] = float(errors.mean())
-    out.update(train_tasks=data.train_tasks, test_tasks=data.test_tasks, commit=git_commit(),
+    out.update(train_tasks=data.train_tasks, test_tasks=data.test_tasks, **code_record(),
                wall_time_s=round(time.perf_counter() - start, 2))
     path = probe_path(run_dir, probe)
     atomic_save_npz(path.with_name(f"{probe.name}-latents.npz"),

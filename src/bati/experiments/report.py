@@ -345,6 +345,8 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
         f"- cells finished: {n_done} of {len(plan.cells)}; seeds {list(plan.seeds)}",
         f"- commit(s): {', '.join(short_commit(c) for c in commits) or 'unknown'}; "
         f"device(s): {', '.join(devices) or 'unknown'}",
+        (f"- **{changed} run(s) from code with uncommitted changes** (their commit alone does not give them back)"
+         if (changed := sum(run.uncommitted_changes for run in runs)) else None),
         f"- summed wall time of the finished training jobs: {train_wall / 60:.1f} min (the seeds of a job share its "
         "time; a resumed job's sessions add up)",
         "- numbers: mean over seeds (± std from 2 seeds on) of each run's mean of its last 5 evaluations"

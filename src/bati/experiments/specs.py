@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bati.envs import FAMILY_NAMES, TaskFamily, family_names, get_family
+from bati.envs import TaskFamily, family_names, get_family
 from bati.errors import BatiError
 from bati.experiments.probes import Probe, run_probe
 from bati.experiments.sweep import Cell, Grid, SweepResult, expand, record_lock, sweep
@@ -41,11 +41,6 @@ DEFAULT_SEEDS = {"quick": (0,), "cpu": (0, 1, 2), "paper": (0, 1, 2, 3, 4)}
 EXPERTS_METHODS = ("bati", "bati-r", "recon", "focal", "unicorn", "csro", "oracle")
 # Self-collected context: main's methods but DPT (its causal transformer reads a repeated window as a sequence).
 SELF_COLLECT_METHODS = ("bati", "bati-r", "recon", "focal", "unicorn", "csro", "oracle", "no-context")
-
-
-def own_family_names() -> tuple[str, ...]:
-    """The families registered with `register_family` (not the built-in ones)."""
-    return tuple(n for n in family_names() if n not in FAMILY_NAMES)
 
 
 class ExperimentError(BatiError, ValueError):
@@ -355,7 +350,7 @@ def plan_experiment(spec: Spec, scale: str, out_dir: Path, *, seeds: tuple[int, 
     clash = sorted(own & {s.partition("=")[0].strip().replace("-", "_") for s in settings})
     if clash:
         raise ExperimentError(f"experiment {spec.name!r} sets {', '.join(clash)} itself; leave it out of --settings")
-    own = [f for f in families if f not in {f for p in spec.parts for f in p.families} and f in own_family_names()]
+    own = [f for f in families if f not in {f for p in spec.parts for f in p.families} and f in family_names()]
     parts = spec.parts + (tuple(p for f in own for p in spec.for_family(get_family(f))) if spec.for_family else ())
     spec_methods = {m for p in spec.parts for m in p.methods}
     spec_families = {f for p in parts for f in p.families}
@@ -363,7 +358,7 @@ def plan_experiment(spec: Spec, scale: str, out_dir: Path, *, seeds: tuple[int, 
         extra = [x for x in chosen if x not in allowed]
         if extra:
             hint = "" if kind == "method" else (
-                " or a family registered with register_family" if spec.for_family else
+                " or any other family (`bati envs`: PointGoal, or one registered with register_family)" if spec.for_family else
                 f" (a family of your own runs in: {', '.join(n for n, s in SPECS.items() if s.for_family)})")
             raise ExperimentError(f"experiment {spec.name!r} has no {kind} {', '.join(map(repr, extra))}; "
                                   f"its {kind} choices: {', '.join(sorted(allowed))}{hint}")

@@ -15,7 +15,7 @@ import numpy as np
 from bati.envs import get_family
 from bati.envs.rollout import Episodes, rollout
 from bati.experts.zoo import ZOO_DIR, Expert, load
-from bati.io import atomic_write_json, atomic_write_text, git_commit
+from bati.io import atomic_write_json, atomic_write_text, code_record
 
 HALF_CHEETAH_CONTROL_COST = 0.05
 
@@ -76,7 +76,7 @@ def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = Non
         "oracle_train_return": float(own.returns[: len(train)].mean()),
         "most_different_expert_test_return": float(against.returns.mean()),
         "task_specificity_gap": float(own_test.mean() - against.returns.mean()),
-        "commit": git_commit(),
+        **code_record(),
     }
     if family_name == "HalfCheetahVel":
         # noise-free reward = -|v - v*| - 0.05 |a|^2, so |v - v*| is recovered exactly.

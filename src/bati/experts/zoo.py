@@ -89,8 +89,9 @@ def load(family_name: str, zoo_dir: str | Path | None = None, kind: str = "condi
         return _EXPERT_FACTORIES[family_name]()
     if not meta_path.exists():
         raise FileNotFoundError(
-            f"no expert for {family_name} in {directory}; train one with `bati experts train --family {family_name}`"
-        )
+            f"no expert for {family_name} in {directory}; `bati experts train --family {family_name}` trains one "
+            f"and exports it to runs/experts/{family_name}/zoo/ (its --export-dir): point at that with "
+            f"--zoo-dir runs/experts/{family_name}/zoo")
     meta = json.loads(meta_path.read_text())
     if meta.get("family") != family_name:
         raise ValueError(f"{meta_path} holds an expert of {meta.get('family')!r}, not {family_name!r}")

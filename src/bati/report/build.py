@@ -271,6 +271,9 @@ def group_description(group: Group) -> str:
         run_line += f"; commit {', '.join(commits)}"
     if devices:
         run_line += f"; device {', '.join(devices)}"
+    changed = sum(r.uncommitted_changes for r in group.runs)
+    if changed:
+        run_line += f"; **{changed} run(s) from code with uncommitted changes**"
     lines.append(run_line + ".")
     return " ".join(lines)
 

@@ -26,7 +26,7 @@ from bati.checkpoints import CHECKPOINT_NAME
 from bati.data import sample_contexts
 from bati.envs import get_family
 from bati.inference import InferenceError, load_run
-from bati.io import atomic_write_json, git_commit, read_run_config
+from bati.io import atomic_write_json, code_record, read_run_config
 from bati.methods.dynamics import context_nll_terms
 
 LIKELIHOOD_FILE = "likelihood.json"
@@ -85,7 +85,7 @@ def save_likelihood_split(run_dir: Path, context_length: int = 200, seed: int = 
     """`likelihood_split` of the run's last checkpoint, written to `<run>/likelihood.json` (atomically)."""
     start = time.perf_counter()
     report = likelihood_split(run_dir, context_length, seed)
-    report.update(context_length=context_length, seed=seed, commit=git_commit(),
+    report.update(context_length=context_length, seed=seed, **code_record(),
                   wall_time_s=round(time.perf_counter() - start, 2))
     atomic_write_json(Path(run_dir) / LIKELIHOOD_FILE, report)
     return report

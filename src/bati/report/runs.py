@@ -81,6 +81,8 @@ class RunResult:
     device: str | None = None
     jax_version: str | None = None
     commit: str | None = None
+    uncommitted_changes: bool = False
+    """Its code differed from `commit` (older records: a commit ending in "-dirty")."""
     wall_time_s: float | None = None
     held_out: dict[str, float] = field(default_factory=dict)
     """A run on your own datasets: its HELD_OUT_KEYS (no p_train / p_test returns, which are NaN)."""
@@ -128,6 +130,7 @@ class RunResult:
             curve=list(raw.get("curve") or []), config=config if isinstance(config, dict) else None,
             reference_returns=refs, data=raw.get("data") if isinstance(raw.get("data"), dict) else None,
             device=raw.get("device"), jax_version=raw.get("jax_version"), commit=raw.get("commit"),
+            uncommitted_changes=bool(raw.get("uncommitted_changes")) or "-dirty" in str(raw.get("commit")),
             wall_time_s=None if raw.get("wall_time_s") is None else _float(raw["wall_time_s"]),
             held_out={k: float(v) for k, v in held_out.items()},
         )

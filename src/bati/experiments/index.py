@@ -1,0 +1,385 @@
+"""The committed results, indexed: `bati results`.
+
+Every folder of results/ that holds a report is a `Study`: the question it answers and how its runs were
+made (an experiment at a scale with its settings, or `bati report` over a folder of runs). From the
+studies and their records this module writes
+
+- `results/README.md`: per study the command, the scale, cells finished of planned, seeds, commits,
+  devices, summed wall time and the link to its report; then the folders that hold other records;
+- `docs/results.md`: per experiment, at the largest scale with at least half its cells finished, its
+  first table (from its report), the command, the link, and what it shows (hand-written, from
+  `results/notes.md`, one `## <report folder>` section per study);
+- the README's headline table (between `<!-- headline -->` and `<!-- /headline -->`): the IQM of the
+  normalised p_test score with its 95% stratified-bootstrap interval, per method and family, of the
+  `main` experiment at the largest scale where it is that complete.
+
+`regenerate_reports` rewrites every experiment study's report from its cells (the same numbers, or the
+diff shows what moved); `pack_results` packs finished runs' metrics.jsonl (bati.io.pack_jsonl).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+from bati.experiments.report import cell_records, experiment_report
+from bati.experiments.specs import MAIN_METHODS, SCALES, SPECS, Plan, get_spec, plan_experiment
+from bati.io import atomic_write_text, pack_jsonl, short_commit
+from bati.report.runs import RunResult, find_eval_files, jobs_wall_time
+
+RESULTS = Path("results")
+NOTES = RESULTS / "notes.md"
+INDEX = RESULTS / "README.md"
+RESULTS_PAGE = Path("docs/results.md")
+README = Path("README.md")
+HEADLINE = ("<!-- headline -->", "<!-- /headline -->")
+ENOUGH = 0.5
+"""The share of an experiment's planned cells that must be finished before its scale is the one shown."""
+
+
+@dataclass(frozen=True)
+class Study:
+    """One report folder of results/: what it asks and how its runs were made."""
+
+    report: Path
+    """The folder holding report.md, relative to the project root."""
+    question: str
+    experiment: str | None = None
+    """The experiment it reports (`bati experiment`); None: `bati report` over the runs in `runs`."""
+    scale: str = "quick"
+    settings: tuple[str, ...] = ()
+    seeds: tuple[int, ...] | None = None
+    methods: tuple[str, ...] = ()
+    families: tuple[str, ...] = ()
+    """The experiment's methods and families it ran (default: all of them)."""
+    out_dir: Path | None = None
+    """The experiment's results directory (default: the report folder's parent)."""
+    runs: Path | None = None
+    """`bati report` folders: where its runs are (default: the report folder's parent)."""
+    command: str = ""
+    """How its runs were made, where no experiment command says it."""
+    store: bool = False
+    """A scale's own experiments directory (results/<scale>/experiments): docs/results.md picks from these."""
+
+    @property
+    def cells_dir(self) -> Path:
+        return self.out_dir or self.report.parent
+
+    def plan(self, root: Path) -> Plan:
+        return plan_experiment(get_spec(self.experiment), self.scale, root / self.cells_dir, seeds=self.seeds,
+                               settings=self.settings, methods=self.methods, families=self.families)
+
+    def command_line(self) -> str:
+        if self.experiment is None:
+            return self.command
+        parts = ["bati experiment", self.experiment, "--scale", self.scale]
+        for name in ("seeds", "methods", "families"):
+            if getattr(self, name):
+                parts += [f"--{name}", *map(str, getattr(self, name))]
+        if self.settings:
+            parts += ["--settings", *self.settings]
+        return " ".join(parts + ["--out-dir", str(self.cells_dir)])
+
+
+STORES = {"quick": RESULTS / "quick/experiments", "cpu": RESULTS / "cpu/experiments",
+          "paper": RESULTS / "paper/experiments"}
+"""Each scale's experiments directory: a report folder named after an experiment there is that experiment."""
+TWELVE_K = RESULTS / "quick/locomotion-12k"
+"""The quick scale's data and networks with 4x its steps (12,000): the same experiments, one more scale."""
+
+CLUB_ANY = "csro.club_negatives=any-task"
+ERTRL_FIRST = ("ertrl.metric_weight=1.0", "ertrl.latent_activation=none")
+DAY_DEFAULTS = {
+    RESULTS / "quick/experiments/main": (CLUB_ANY, *ERTRL_FIRST),
+    RESULTS / "quick/experiments/noise": (CLUB_ANY, *ERTRL_FIRST),
+    RESULTS / "quick/experiments/kuhn": (CLUB_ANY, *ERTRL_FIRST),
+    **{RESULTS / "quick/experiments" / name: (CLUB_ANY,)
+       for name in ("self-collected", "ood-tasks", "context-length", "splits")},
+    **{TWELVE_K / name: (CLUB_ANY,)
+       for name in ("main", "noiseless-hopper", "noise", "ood-tasks", "context-length", "splits")},
+}
+"""Report folders whose cells ran with the defaults of their day: the settings that plan those cells (CSRO's CLUB
+negatives drawn from any task, the default before 2026-11-25; ER-TRL's first form: its FOCAL term at weight 1.0 and
+unbounded latents; docs/methods.md)."""
+
+DECLARED = (
+    Study(RESULTS / "cpu/experiments/main-ertrl-unbounded", "ER-TRL without the tanh on its latent (the paper's "
+          "form)", "main", "cpu", ("ertrl.latent_activation=none",), methods=("er-trl",),
+          out_dir=RESULTS / "cpu/experiments"),
+    Study(RESULTS / "cpu/focal-distance/main", "FOCAL with the root-mean distance in its metric loss", "main", "cpu",
+          ("focal.distance=root-mean",), methods=("focal",), families=("AntDir",), seeds=(0,)),
+    Study(RESULTS / "cpu/tanh/main", "FOCAL with a tanh on its latent", "main", "cpu",
+          ("focal.latent_activation=tanh",), seeds=(0,), methods=("focal",), families=("AntDir",)),
+    Study(RESULTS / "quick/convergence/main", "HopperParam at the quick scale with 4x its steps: converged?", "main",
+          "quick", ("steps=12000", CLUB_ANY), families=("HopperParam",)),
+    Study(RESULTS / "quick/convergence/kuhn", "Kuhn poker at the quick scale with 4x its steps: converged?", "kuhn",
+          "quick", ("steps=12000", CLUB_ANY)),
+    Study(RESULTS / "quick/hopper-data80/main", "HopperParam with 80 episodes per task instead of 20 (12k steps)",
+          "main", "quick", ("steps=12000", "episodes_per_task=80"), methods=("bati", "focal", "recon", "no-context",
+          "oracle"), families=("HopperParam",)),
+    Study(RESULTS / "quick/kuhn-context200/kuhn", "Kuhn poker with contexts of 200 transitions", "kuhn", "quick",
+          ("eval_context_length=200", CLUB_ANY),
+          methods=("bati", "bati-r", "recon", "unicorn", "csro", "focal", "oracle", "no-context")),
+    Study(RESULTS / "quick/bati-run/report", "`bati run`'s default: BATI, BATI-R and the oracle on PointGoal",
+          command="bati run --out-dir results/quick/bati-run"),
+    Study(RESULTS / "quick/pointgoal-convergence/report", "PointGoal at 3k and 12k steps: converged?",
+          command="bati sweep --methods bati bati-r recon no-context --settings steps=3000|12000 "
+                  "--out-dir results/quick/pointgoal-convergence; bati report results/quick/pointgoal-convergence"),
+    Study(RESULTS / "own-data/goalline", "Your own data: GoalLine through the Minari path (docs/own-data.md)",
+          command="python examples/own_data_goalline.py --steps 3000 --episodes 30 --seeds 0 1 2"),
+)
+"""The report folders that are not an experiment of a scale's experiments directory."""
+
+OTHER_RECORDS = {
+    RESULTS / "experts": "training logs of the shipped experts (`bati experts train`)",
+    RESULTS / "diagnostics": "measurements of the benchmarks/ scripts (task sensitivity, latent scale, ER-TRL balance, "
+                             "expert training)",
+}
+
+
+def studies(root: Path = Path(".")) -> list[Study]:
+    """Every study: the experiments found in each scale's directory and in the 12k one, then the declared ones."""
+    found = []
+    for scale, store in [*STORES.items(), ("quick", TWELVE_K)]:
+        for name in SPECS:
+            if (root / store / name / "report.md").exists():
+                settings = (("steps=12000",) if store == TWELVE_K else ()) + DAY_DEFAULTS.get(store / name, ())
+                title = SPECS[name].title + (" (4x the quick scale's steps)" if store == TWELVE_K else "")
+                found.append(Study(store / name, title, name, scale, settings, store=store != TWELVE_K))
+    return found + [s for s in DECLARED if (root / s.report / "report.md").exists()]
+
+
+def report_folders(root: Path = Path(".")) -> list[Path]:
+    """Every folder under results/ that holds a report.md (relative to root)."""
+    return sorted(p.parent.relative_to(root) for p in (root / RESULTS).rglob("report.md"))
+
+
+@dataclass
+class Summary:
+    study: Study
+    finished: int
+    planned: int
+    seeds: tuple[int, ...]
+    commits: list[str]
+    uncommitted: int
+    """Runs whose code had uncommitted changes."""
+    devices: Counter
+    wall_min: float
+
+
+def summarise(study: Study, root: Path = Path(".")) -> Summary:
+    """The study's numbers from its records: finished cells (of planned), commits, devices, wall time."""
+    if study.experiment is not None:
+        plan = study.plan(root)
+        records, runs = cell_records(plan)
+        planned, seeds = len(plan.cells), plan.seeds
+    else:
+        runs = []
+        for path in find_eval_files(root / (study.runs or study.report.parent)):
+            try:
+                runs.append(RunResult.from_dict(json.loads(path.read_text()), path))
+            except (OSError, ValueError, TypeError, AttributeError):
+                continue
+        planned, seeds = len(runs), tuple(sorted({r.seed for r in runs}))
+    commits = [r.commit for r in runs if r.commit]
+    wall = jobs_wall_time(((r.path.parent.parent, r.method), r.total_wall_time()) for r in runs)
+    return Summary(study, len(runs), planned, seeds, sorted({short_commit(c).removesuffix("-dirty") for c in commits}),
+                   sum(r.uncommitted_changes for r in runs), Counter(_short_device(r.device) for r in runs if r.device),
+                   wall / 60)
+
+
+def _short_device(device: str) -> str:
+    """"cpu: 2-core Intel(R) Xeon(R) Processor, AVX-512 (x86_64) x1" -> "cpu: 2-core Intel Xeon"."""
+    text = re.sub(r"\(R\)|\(TM\)|Processor|CPU @ [\d.]+GHz|@ [\d.]+GHz", "", device)
+    text = re.sub(r",.*| \(x86_64\).*| x\d+$", "", text)
+    return re.sub(r"\s+", " ", text).strip()
+
+
+# --- results/README.md -----------------------------------------------------------------------------
+def index_markdown(summaries: list[Summary], root: Path = Path(".")) -> str:
+    lines = ["# Results", "",
+             "Generated by `bati results` from the records under results/ (do not edit: rerun it). Every run "
+             "directory keeps config.json, eval.json, eval.jsonl, likelihood.json where probed, and its training log "
+             "packed as metrics.jsonl.gz (floats to 4 significant digits). What each study shows: "
+             "[docs/results.md](../docs/results.md); the paper's claims decided: [docs/claims.md](../docs/claims.md).",
+             ""]
+    for scale in SCALES + ("other",):
+        rows = [s for s in summaries if (s.study.scale if s.study.experiment else "other") == scale]
+        if not rows:
+            continue
+        lines += [f"## {scale}" if scale != "other" else "## Runs reported by `bati report` and examples", "",
+                  "| study | question | cells | seeds | commits | devices | wall time | command |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for s in rows:
+            link = f"[{s.study.report.relative_to(RESULTS)}]({s.study.report.relative_to(RESULTS)}/report.md)"
+            commits = f"{len(s.commits)}" + (f" ({s.uncommitted} runs with uncommitted changes)" if s.uncommitted
+                                             else "")
+            devices = "; ".join(f"{d} ({n})" for d, n in sorted(s.devices.items())) or "unknown"
+            seeds = " ".join(map(str, s.seeds)) or "–"
+            lines.append(f"| {link} | {s.study.question} | {s.finished} / {s.planned} | {seeds} | {commits} | "
+                         f"{devices} | {s.wall_min:.0f} min | `{s.study.command_line()}` |")
+        lines.append("")
+    lines += ["## Other records", ""]
+    lines += [f"- [{p.relative_to(RESULTS)}]({p.relative_to(RESULTS)}/): {text}"
+              for p, text in OTHER_RECORDS.items() if (root / p).exists()]
+    return "\n".join(lines) + "\n"
+
+
+# --- docs/results.md -----------------------------------------------------------------------------
+def first_table(report: str) -> str:
+    """The first Markdown table of a report, with the bold title above it."""
+    lines = report.splitlines()
+    start = next((i for i, line in enumerate(lines) if line.startswith("|")), None)
+    if start is None:
+        return ""
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+    title = next((lines[i] for i in range(start - 1, max(start - 4, -1), -1) if lines[i].startswith("**")), "")
+    return "\n".join(([title, ""] if title else []) + lines[start:end])
+
+
+def read_notes(root: Path = Path(".")) -> dict[str, str]:
+    """results/notes.md: the hand-written "what it shows", one `## <report folder>` section per study."""
+    path = root / NOTES
+    if not path.exists():
+        return {}
+    notes, key = {}, None
+    for line in path.read_text().splitlines():
+        if line.startswith("## "):
+            key = line[3:].strip()
+            notes[key] = ""
+        elif key is not None:
+            notes[key] += line + "\n"
+    return {k: v.strip() for k, v in notes.items()}
+
+
+def _size(study: Study) -> int:
+    """Scales from the smallest: quick, quick with 4x its steps (12k), cpu, paper."""
+    return {"quick": 0, "cpu": 2, "paper": 3}[study.scale] + (study.report.parent == TWELVE_K)
+
+
+def shown(summaries: list[Summary]) -> list[tuple[Summary, list[Summary]]]:
+    """Per experiment (in the experiments' order): its study at the largest scale with at least ENOUGH of its cells
+    finished, and its studies at larger scales with fewer (scales' own directories and the 12k one)."""
+    candidates = [s for s in summaries if s.study.experiment is not None and s.planned
+                  and (s.study.store or s.study.report.parent == TWELVE_K)]
+    out = []
+    for name in SPECS:
+        mine = sorted((s for s in candidates if s.study.experiment == name), key=lambda s: _size(s.study))
+        enough = [s for s in mine if s.finished >= ENOUGH * s.planned]
+        if enough:
+            out.append((enough[-1], [s for s in mine if _size(s.study) > _size(enough[-1].study)]))
+    return out
+
+
+def results_markdown(summaries: list[Summary], root: Path = Path(".")) -> str:
+    notes = read_notes(root)
+    lines = ["# Results", "",
+             "Generated by `bati results` (do not edit: the notes are in results/notes.md). Per experiment, the "
+             "largest scale at which at least half of its cells are finished; every other study, scale and command "
+             "is in [results/README.md](../results/README.md), the verdicts on the paper's claims in "
+             "[claims.md](claims.md). Numbers: mean ± std over seeds of each run's mean of its last 5 evaluations "
+             "(the reports' convention); the reports add rliable's IQM and probability of improvement.", ""]
+    for s, larger in shown(summaries):
+        report = root / s.study.report / "report.md"
+        spec = SPECS[s.study.experiment]
+        scale = "quick scale, 4x its steps" if s.study.report.parent == TWELVE_K else f"{s.study.scale} scale"
+        lines += [f"## {spec.name}: {spec.title} ({scale})", "",
+                  f"`{s.study.command_line()}`: {s.finished} of {s.planned} cells, seeds "
+                  f"{' '.join(map(str, s.seeds))}; [report](../{s.study.report}/report.md)."
+                  + "".join(f" At the {o.study.scale} scale{' (12k steps)' if _size(o.study) == 1 else ''} so far: "
+                            f"{o.finished} of {o.planned} cells, [report](../{o.study.report}/report.md)."
+                            for o in larger), ""]
+        note = notes.get(str(s.study.report))
+        if note:
+            lines += [note, ""]
+        lines += [first_table(report.read_text()), ""]
+    return "\n".join(lines)
+
+
+# --- the README's headline -------------------------------------------------------------------------
+def headline_markdown(root: Path = Path(".")) -> str:
+    """The IQM of the normalised p_test score per method and family of `main` at the largest scale where at
+    least ENOUGH of its cells are finished."""
+    from bati.experiments.claims import SOURCES, gather
+    from bati.report.stats import iqm_interval
+
+    for source in reversed([s for s in SOURCES if s.scale in STORES and not s.settings]):
+        study = Study(source.out_dir / "main", "", "main", source.scale)
+        if not (root / study.report / "report.md").exists():
+            continue
+        summary = summarise(study, root)
+        if summary.planned and summary.finished >= ENOUGH * summary.planned:
+            break
+    else:
+        return "No scale has the main experiment's cells finished yet.\n"
+    records = [r for r in gather("main", source, root) if r.seed in summary.seeds]
+    families = sorted({r.family for r in records})
+    lines = [f"p_test score (normalised: 0 = random policy, 1 = the experts), IQM [95% CI] over seeds "
+             f"{' '.join(map(str, summary.seeds))}, {source.scale} scale ({summary.finished} of {summary.planned} "
+             f"cells; [report]({study.report}/report.md), the paper's claims decided: [docs/claims.md]"
+             "(docs/claims.md)).", "",
+             "| method | " + " | ".join(families) + " |", "|---|" + "---|" * len(families)]
+    for method in MAIN_METHODS:
+        cells = []
+        for family in families:
+            scores = [r.p_test for r in records if r.method == method and r.family == family]
+            if not scores:
+                cells.append("–")
+            elif len(scores) < 2:
+                cells.append(f"{scores[0]:.2f} (1 seed)")
+            else:
+                iqm, low, high = iqm_interval([[x] for x in scores])
+                cells.append(f"{iqm:.2f} [{low:.2f}, {high:.2f}]")
+        if any(c != "–" for c in cells):
+            lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def with_headline(readme: str, headline: str) -> str:
+    start, end = HEADLINE
+    if start not in readme or end not in readme:
+        raise ValueError(f"README.md has no {start} ... {end} block for the headline table")
+    before, rest = readme.split(start, 1)
+    _, after = rest.split(end, 1)
+    return f"{before}{start}\n{headline}{end}{after}"
+
+
+def write_results(root: Path = Path("."), readme: bool = True) -> list[Path]:
+    """results/README.md, docs/results.md and (readme) the README's headline table; the files written."""
+    summaries = [summarise(s, root) for s in studies(root)]
+    atomic_write_text(root / INDEX, index_markdown(summaries, root))
+    atomic_write_text(root / RESULTS_PAGE, results_markdown(summaries, root))
+    written = [root / INDEX, root / RESULTS_PAGE]
+    if readme:
+        path = root / README
+        atomic_write_text(path, with_headline(path.read_text(), headline_markdown(root)))
+        written.append(path)
+    return written
+
+
+def regenerate_reports(root: Path = Path(".")) -> list[Path]:
+    """Every experiment study's report written again from its cells (report-only); the report folders."""
+    done = []
+    for study in studies(root):
+        if study.experiment is not None:
+            experiment_report(study.plan(root), root / study.report, command=study.command_line())
+            done.append(study.report)
+    return done
+
+
+def pack_results(root: Path = Path(".")) -> tuple[int, int]:
+    """Pack the metrics.jsonl of every finished run under results/ (one with eval.json); (files, bytes saved)."""
+    files, saved = 0, 0
+    for eval_file in find_eval_files(root / RESULTS):
+        log = eval_file.parent / "metrics.jsonl"
+        if log.exists():
+            before = log.stat().st_size
+            saved += before - pack_jsonl(log).stat().st_size
+            files += 1
+    return files, saved
+
+
+

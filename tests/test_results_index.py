@@ -1,0 +1,92 @@
+"""`bati results`: the index of the committed results, packed training logs, the generated pages."""
+
+import gzip
+import json
+from pathlib import Path
+
+import pytest
+
+from bati.cli import main
+from bati.experiments.index import (INDEX, Study, _short_device, first_table, read_notes, report_folders, studies,
+                                    with_headline)
+from bati.io import log_exists, pack_jsonl, read_jsonl
+from bati.report.runs import earlier_sessions_time
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_every_report_folder_is_a_study_and_listed_in_the_index():
+    folders = report_folders(ROOT)
+    assert folders, "results/ holds no report"
+    declared = {s.report for s in studies(ROOT)}
+    assert [f for f in folders if f not in declared] == [], "declare the folder in bati.experiments.index"
+    index = (ROOT / INDEX).read_text()
+    missing = [f for f in folders if f"]({f.relative_to('results')}/report.md)" not in index]
+    assert missing == [], "results/README.md is stale: run `bati results`"
+
+
+def test_results_folder_names_carry_no_device_or_date():
+    names = [p.name for p in (ROOT / "results").rglob("*") if p.is_dir()]
+    assert [n for n in names if any(t in n for t in ("h100", "h200", "2026-", "-v1", "-v2"))] == []
+
+
+def test_committed_runs_keep_their_training_log_packed():
+    runs = [p.parent for p in (ROOT / "results").rglob("eval.json")]
+    assert runs
+    assert [r for r in runs if (r / "metrics.jsonl").exists()] == [], "run `bati results --pack` before committing"
+
+
+def test_pack_rounds_floats_keeps_integers_and_reads_back(tmp_path):
+    log = tmp_path / "metrics.jsonl"
+    records = [{"step": 100, "wall_time": 12.345678, "loss": 0.123456789, "nan": float("nan"), "n": 7},
+               {"step": 200, "wall_time": 3.04, "loss": -1234.56789, "nan": 1.0, "n": 8}]
+    log.write_text("".join(json.dumps(r) + "\n" for r in records))
+    packed = pack_jsonl(log)
+    assert packed.name == "metrics.jsonl.gz" and not log.exists() and log_exists(log)
+    back = read_jsonl(log)
+    assert [r["step"] for r in back] == [100, 200] and back[0]["n"] == 7
+    assert back[0]["loss"] == 0.1235 and back[1]["loss"] == -1235.0
+    assert back[0]["wall_time"] == 12.3
+    assert back[0]["nan"] != back[0]["nan"]  # NaN stays NaN
+    assert gzip.decompress(packed.read_bytes()).count(b"\n") == 2
+    # a resumed run's earlier session (its clock restarted) is still counted from the packed log
+    assert earlier_sessions_time(tmp_path) == pytest.approx(12.3)
+
+
+def test_first_table_takes_the_title_and_the_rows():
+    report = "# R\n\n- a\n\n**p test return**\n\n| m | x |\n|---|---|\n| bati | 1 |\n\n**second**\n\n| y |\n"
+    assert first_table(report) == "**p test return**\n\n| m | x |\n|---|---|\n| bati | 1 |"
+    assert first_table("no table") == ""
+
+
+def test_headline_replaces_only_its_block():
+    readme = "top\n<!-- headline -->\nold\n<!-- /headline -->\nbottom\n"
+    assert with_headline(readme, "new\n") == "top\n<!-- headline -->\nnew\n<!-- /headline -->\nbottom\n"
+    with pytest.raises(ValueError, match="headline"):
+        with_headline("no block", "new\n")
+
+
+def test_notes_are_read_per_report_folder(tmp_path):
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results/notes.md").write_text("# Notes\n\n## results/cpu/experiments/main\n\nIt shows x.\n\n"
+                                               "## results/quick/experiments/kuhn\nKuhn.\n")
+    assert read_notes(tmp_path) == {"results/cpu/experiments/main": "It shows x.",
+                                    "results/quick/experiments/kuhn": "Kuhn."}
+
+
+def test_study_command_names_what_plans_its_cells():
+    study = Study(Path("results/quick/x/main"), "q", "main", "quick", ("steps=12000",), seeds=(0,),
+                  families=("HopperParam",))
+    assert study.command_line() == ("bati experiment main --scale quick --seeds 0 --families HopperParam "
+                                    "--settings steps=12000 --out-dir results/quick/x")
+
+
+def test_short_device_names():
+    assert _short_device("cpu: 2-core Intel(R) Xeon(R) Processor @ 2.80GHz, AVX-512 (x86_64) x1") == \
+        "cpu: 2-core Intel Xeon"
+    assert _short_device("gpu: NVIDIA H200") == "gpu: NVIDIA H200"
+
+
+def test_results_refuses_a_root_without_results(tmp_path, capsys):
+    assert main(["results", "--root", str(tmp_path)]) == 2
+    assert "not a directory" in capsys.readouterr().err
