@@ -81,7 +81,7 @@ def away(root: Path, stash: Path, pause: bool) -> None:
     if stash.exists():
         raise GpuLocalError(f"{stash} exists: a stash from an earlier `away`; move it back (`back`) or remove it")
     if stash.resolve().is_relative_to(root.resolve()):
-        raise GpuLocalError(f"--stash {stash} is inside the checkout: it would travel")
+        raise GpuLocalError(f"--stash {stash} is inside the checkout: it would be copied with it")
     slim = root / ".gpu" / "committed"
     if slim.exists():
         shutil.rmtree(slim)
@@ -103,11 +103,11 @@ def away(root: Path, stash: Path, pause: bool) -> None:
             os.kill(pid, signal.SIGCONT)
         paused_pids(root).unlink()
         raise GpuLocalError(f"could not move {results} to {stash}: {err}") from err
-    travels = travel_size(root)
+    size = copy_size(root)
     print(f"results/ moved to {stash}; {len(run_dirs(slim))} committed cell(s) in .gpu/committed; "
-          f"{len(pids)} queue process(es) paused; travels ~{travels / 2**20:.1f} MiB with .whl and .gpu")
+          f"{len(pids)} queue process(es) paused; a copy of the checkout holds ~{size / 2**20:.1f} MiB with .whl and .gpu")
     limit = float(os.environ.get(COPY_LIMIT_VARIABLE) or "inf") * 2**20
-    if travels > limit:
+    if size > limit:
         print(f"warning: over {limit / 2**20:.0f} MiB ({COPY_LIMIT_VARIABLE}): too much for your copy", file=sys.stderr)
 
 
@@ -131,7 +131,7 @@ def back(root: Path) -> None:
     print(f"results/ back from {stash}; {len(state['pids'])} queue process(es) resumed")
 
 
-def travel_size(root: Path) -> int:
+def copy_size(root: Path) -> int:
     """Bytes of what a copy of the checkout would hold: tracked and untracked-not-ignored files, plus .whl and .gpu."""
     listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=root, capture_output=True,
                             text=True).stdout.split("\0")
@@ -141,8 +141,8 @@ def travel_size(root: Path) -> int:
     return total
 
 
-def unpack(root: Path, files_at: Path, logs: Path) -> None:
-    pack = files_at / "results.tar.gz"
+def unpack(root: Path, folder: Path, logs: Path) -> None:
+    pack = folder / "results.tar.gz"
     if not pack.is_file():
         raise GpuLocalError(f"no {pack}: no pack was copied back")
     committed = root / COMMITTED
@@ -152,7 +152,7 @@ def unpack(root: Path, files_at: Path, logs: Path) -> None:
         raise GpuLocalError(f"{logs} already holds files (an earlier session's logs?): name a new --logs folder")
     with tempfile.TemporaryDirectory() as tmp:
         stage = Path(tmp)
-        for archive in [pack, *sorted(files_at.glob("resume-*.tar"))]:
+        for archive in [pack, *sorted(folder.glob("resume-*.tar"))]:
             with tarfile.open(archive) as tar:
                 if hasattr(tarfile, "data_filter"):  # Python >= 3.11.4: no member may leave the stage
                     tar.extractall(stage, filter="data")
@@ -203,7 +203,7 @@ def main(argv=None) -> int:
     go.add_argument("--no-pause", action="store_true", help="leave the cpu queue running (it must not write)")
     verbs.add_parser("back", help="move results/ back and resume the cpu queue")
     take = verbs.add_parser("unpack", help="a GPU command's packs into results/paper/experiments and .gpu/resume")
-    take.add_argument("files_at", type=Path, metavar="folder",
+    take.add_argument("folder", type=Path,
                       help="the folder copied back from the GPU machine (its results.tar.gz and resume-*.tar)")
     take.add_argument("--logs", type=Path, required=True, help="where the session's logs and partial runs go")
     args = parser.parse_args(argv)
@@ -214,7 +214,7 @@ def main(argv=None) -> int:
         elif args.verb == "back":
             back(root)
         else:
-            unpack(root, args.files_at, args.logs if args.logs.is_absolute() else root / args.logs)
+            unpack(root, args.folder, args.logs if args.logs.is_absolute() else root / args.logs)
     except GpuLocalError as err:
         print(f"gpu_local {args.verb}: {err}", file=sys.stderr)
         return 2

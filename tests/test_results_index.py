@@ -7,8 +7,16 @@ from pathlib import Path
 import pytest
 
 from bati.cli import main
-from bati.experiments.index import (INDEX, Study, _short_device, first_table, read_notes, report_folders, studies,
-                                    with_headline)
+from bati.experiments.index import (
+    INDEX,
+    Study,
+    _short_device,
+    first_table,
+    read_notes,
+    report_folders,
+    studies,
+    with_headline,
+)
 from bati.io import log_exists, pack_jsonl, read_jsonl
 from bati.report.runs import earlier_sessions_time
 

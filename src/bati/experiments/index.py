@@ -174,7 +174,7 @@ def summarise(study: Study, root: Path = Path(".")) -> Summary:
     """The study's numbers from its records: finished cells (of planned), commits, devices, wall time."""
     if study.experiment is not None:
         plan = study.plan(root)
-        records, runs = cell_records(plan)
+        runs = cell_records(plan)[1]
         planned, seeds = len(plan.cells), plan.seeds
     else:
         runs = []
