@@ -22,10 +22,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from bati.device import describe_device
 from bati.io import atomic_write_json, git_commit
 from bati.methods.er_trl import gaussian_entropy
 from bati.methods.focal import metric_loss
-from bati.train import describe_device, open_run
+from bati.run_dir import open_run
 
 CODE_METRIC_WEIGHT = 10.0  # the authors' z_loss_weight
 CODE_PUSH = (1.0, 0.1)  # the authors' FOCAL_z_loss: 1 / (mean squared distance + 100 * 1e-3)

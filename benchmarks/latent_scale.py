@@ -24,8 +24,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from bati.data import sample_contexts
+from bati.device import describe_device
 from bati.io import atomic_write_json, git_commit
-from bati.train import describe_device, open_run
+from bati.run_dir import open_run
 
 
 def latent_scale(run_dir: Path, repeats: int) -> dict:

@@ -18,7 +18,7 @@ import tempfile
 from pathlib import Path
 
 from bati.experts.train import ExpertTrainConfig, train_expert
-from bati.train import describe_device
+from bati.device import describe_device
 
 
 def task_steps_per_second(family: str, tasks: tuple[int, ...], steps: int, start_steps: int, out: Path) -> float:

@@ -20,7 +20,7 @@ import numpy as np
 from train_step import DIMS, make_trainer, random_data
 
 from bati.config import TrainConfig
-from bati.train import describe_device
+from bati.device import describe_device
 from bati.trainer import Trainer
 
 

@@ -91,7 +91,7 @@ def main() -> None:
     args = parser.parse_args()
     from bati.cli import main as bati
     from bati.io import atomic_write_text, git_commit
-    from bati.train import describe_device
+    from bati.device import describe_device
 
     start = time.perf_counter()
     dataset = build(args.out / "minari", args.episodes)

@@ -410,7 +410,7 @@ def test_runs_with_different_references_say_so_and_keep_their_own_normalisation(
 
 
 def test_the_device_names_the_cpu_model(tmp_path):
-    from bati.train import cpu_model
+    from bati.device import cpu_model
 
     info = tmp_path / "cpuinfo"
     info.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC   7B13\nflags\t: fpu\n")

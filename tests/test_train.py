@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 
 import bati.checkpoints as checkpoints_module
+import bati.run_dir as run_dir_module
 import bati.train as train_module
-from bati.rl.iql import IQLConfig
+from bati.config import TrainConfig, family_of
 from bati.envs import FAMILY_NAMES, get_family
 from bati.evaluate import Evaluator
-from bati.methods import METHODS
-from bati.config import TrainConfig
-from bati.config import family_of
 from bati.experts import load as load_expert
+from bati.methods import METHODS
+from bati.rl.iql import IQLConfig
 from bati.train import TrainingError, train, train_seeds
 from bati.trainer import Trainer
 
@@ -55,7 +55,7 @@ def test_every_method_trains_and_evaluates_on_every_family(method, family, synth
 @pytest.fixture
 def point_data(monkeypatch, synthetic_data):
     data = synthetic_data("PointGoal")
-    monkeypatch.setattr(train_module, "ensure_family_data", lambda *a, **k: data)
+    monkeypatch.setattr(run_dir_module, "ensure_family_data", lambda *a, **k: data)
     return data
 
 
@@ -142,7 +142,7 @@ def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(tmp_pat
             train(_config(tmp_path, "nan", steps=20), show_progress=False)  # stops with a step-10 checkpoint
     before = (tmp_path / "nan" / "checkpoint.msgpack").read_bytes()
     poisoned = point_data.train.replace(rewards=jnp.full_like(point_data.train.rewards, jnp.nan))
-    monkeypatch.setattr(train_module, "ensure_family_data", lambda *a, **k: type(point_data)(
+    monkeypatch.setattr(run_dir_module, "ensure_family_data", lambda *a, **k: type(point_data)(
         **{**point_data.__dict__, "train": poisoned}))
     with pytest.raises(TrainingError, match="non-finite"):
         train(_config(tmp_path, "nan", steps=20), show_progress=False)
@@ -172,10 +172,9 @@ def test_a_checkpoint_with_other_networks_is_refused(tmp_path, point_data):
 
 
 def test_likelihood_split_reports_errors_for_each_part_of_eq8(tmp_path, monkeypatch, point_data):
-    from bati import inference
     from bati.report import likelihood
 
-    monkeypatch.setattr(train_module, "load_family_data", lambda *a, **k: point_data)
+    monkeypatch.setattr(run_dir_module, "load_family_data", lambda *a, **k: point_data)
     train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
     report = likelihood.likelihood_split(tmp_path / "run", context_length=20)
     max_distance = 2.0  # PointGoal goals lie on the unit circle
@@ -212,11 +211,10 @@ def test_auroc_matches_hand_computation():
 
 
 def test_infer_and_novelty_on_a_trained_bati_auto_run(tmp_path, monkeypatch, point_data, capsys):
-    from bati import inference
     from bati.cli import main
     from bati.experiments.probes import Probe, run_probe
 
-    monkeypatch.setattr(train_module, "load_family_data", lambda *a, **k: point_data)
+    monkeypatch.setattr(run_dir_module, "load_family_data", lambda *a, **k: point_data)
     train(_config(tmp_path, "run", steps=5, eval_every=5, method="bati-auto"), show_progress=False)
     run_dir = tmp_path / "run"
     evals = [json.loads(line) for line in (run_dir / "eval.jsonl").read_text().splitlines()]
@@ -256,6 +254,21 @@ def test_training_step_vmaps_over_seeds(synthetic_data):
     single, _ = trainer.run_chunk(trainer.init(keys[1]), keys[1], data.train, length=3)
     np.testing.assert_allclose(states.method.params["table"][1], single.method.params["table"], rtol=1e-4, atol=1e-5)
     assert not np.allclose(states.method.params["table"][0], states.method.params["table"][1])
+
+
+def test_one_run_stacked_is_exactly_the_plain_program(synthetic_data):
+    # the training loop always holds its runs stacked; a lone run must keep the unvmapped program's numbers
+    data = synthetic_data("PointGoal")
+    trainer = Trainer(TrainConfig(family="PointGoal", method="csro", steps=3, **TINY).resolved(), data,
+                      family_of("PointGoal"))
+    key = jax.random.PRNGKey(3)
+    plain, plain_metrics = trainer.run_chunk(trainer.init(key), key, data.train, length=3)
+    stacked, metrics = trainer.run_chunks(jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], trainer.init(key)), key[None],
+                                          data.train, length=3)
+    assert metrics["critic_loss"].shape == (1,)
+    for a, b in zip(jax.tree_util.tree_leaves(plain), jax.tree_util.tree_leaves(stacked)):
+        assert b.shape == (1, *a.shape) and np.array_equal(np.asarray(a), np.asarray(b)[0])
+    assert {k: float(v) for k, v in plain_metrics.items()} == {k: float(v[0]) for k, v in metrics.items()}
 
 
 def test_each_step_logs_how_far_apart_the_tasks_latents_are(synthetic_data):
@@ -386,8 +399,8 @@ def test_a_run_takes_its_expert_from_zoo_dir(tmp_path, point_data, monkeypatch):
     zoo = tmp_path / "zoo"
     shutil.copytree(ZOO_DIR / "PointGoal", zoo / "PointGoal")
     asked, loaded, used = [], [], []
-    real_load, real_references = train_module.load_expert, train_module.reference_returns
-    monkeypatch.setattr(train_module, "load_expert",
+    real_load, real_references = run_dir_module.load_expert, train_module.reference_returns
+    monkeypatch.setattr(run_dir_module, "load_expert",
                         lambda family, zoo_dir=None, experts="conditioned": asked.append(zoo_dir)
                         or loaded.append(real_load(family, zoo_dir, experts)) or loaded[-1])
     monkeypatch.setattr(train_module, "reference_returns",

@@ -14,6 +14,7 @@ transitions from p_train followed by N r from p_test, one source called "mixed".
 
 from __future__ import annotations
 
+import copy
 import threading
 from dataclasses import dataclass, field
 
@@ -131,18 +132,31 @@ class Evaluator(WarmsUp):
         self.distances = self.family.distance_matrix(test, train)  # (n_test, n_train)
         self.train_distances = jnp.asarray(self.family.distance_matrix(train, train), jnp.float32)
         self.envs = lockstep_envs(self.family, data.noise, workers)  # made at the first evaluation, then reused
+        self.shares_envs = False  # another evaluator's envs (`inferring_with`): that one starts and closes them
 
     def close(self) -> None:
         """Stop the env pool (its worker processes, if any)."""
         self._warmed()
-        self.envs.close()
+        if not self.shares_envs:
+            self.envs.close()
+
+    def inferring_with(self, method) -> Evaluator:
+        """This evaluator with `method`'s inference instead (one that trains as this one's method and reads the
+        same parameters: bati-r and bati-auto for bati): the same data, contexts, policy and envs (closed by
+        this evaluator), its own compiled inference and warm-up."""
+        other = copy.copy(self)
+        other.method, other._warming, other.shares_envs = method, None, True
+        other.infer, other.latents_of_runs = jax.jit(other._infer), jax.jit(jax.vmap(other.infer_latents))
+        if method.acts_itself or self.method.acts_itself:
+            other.policy = RunsPolicy(method, self.iql)
+        return other
 
     def _warm(self, states, keys, seeds) -> None:
         latents, _ = jax.device_get(self.latents_of_runs(states.method.params, keys))
         k, n = len(seeds), len(self.data.test_tasks)
         observations = np.zeros((k * n, self.data.obs_dim), np.float32)
         self.policy(self.policy.params(states), observations, jnp.asarray(latents[self.sources[0]]))
-        if type(self.family).exact_returns is TaskFamily.exact_returns:  # evaluated by rollouts: start the envs
+        if type(self.family).exact_returns is TaskFamily.exact_returns and not self.shares_envs:  # start the envs
             self.envs.reset(list(self.data.test_tasks) * k, [s + i for s in seeds for i in range(n)])
 
     def contexts(self, source: str, key: jax.Array) -> dict:

@@ -34,7 +34,7 @@ from bati.data.batch import TRANSITION_FIELDS
 from bati.errors import BatiError
 from bati.evaluate import calibrate as calibrate_method
 from bati.io import code_record, read_run_config
-from bati.train import open_run
+from bati.run_dir import open_run
 
 QUANTILE = 0.95
 

@@ -112,5 +112,9 @@ class Trainer:
         return state, jax.tree_util.tree_map(jnp.mean, metrics)
 
     def _run_chunks(self, states: TrainState, base_keys: jax.Array, data, length: int):
-        """`_run_chunk` for k runs (seeds) at once: states and keys stacked on axis 0, data shared."""
+        """`_run_chunk` for k runs (seeds) at once: states and keys stacked on axis 0, data shared. One run
+        (k = 1) is the unvmapped program on its state: exactly the numbers of `run_chunk`."""
+        if base_keys.shape[0] == 1:
+            state, metrics = self._run_chunk(jax.tree_util.tree_map(lambda x: x[0], states), base_keys[0], data, length)
+            return jax.tree_util.tree_map(lambda x: x[None], (state, metrics))
         return jax.vmap(lambda state, key: self._run_chunk(state, key, data, length))(states, base_keys)

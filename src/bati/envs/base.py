@@ -32,7 +32,7 @@ class FamilyRecord:
     """Everything that differs per task family, in one place (Table 3 and our own choices).
 
     A family module defines one record beside its env; every module reads the family's settings from
-    it (the network sizes of `bati.train`, the dataset sizes of `bati.data`, the expert's budget,
+    it (the network sizes of `bati.trainer`, the dataset sizes of `bati.data`, the expert's budget,
     the per-family weights of UNICORN and CSRO). Adding a family is one env file plus one record:
     docs/extending.md.
     """

@@ -76,7 +76,7 @@ class MainJob:
 def run_main_job(job: MainJob, show_progress: bool = True) -> dict:
     """Sweep the job's grid, report it, read the table. Returns {"markdown", "reading", "out_dir",
     "report_dir", "wall_time_s", "rows"}; bad settings raise (one line) before any data is collected."""
-    from bati.train import check_seeds
+    from bati.run_dir import check_seeds
 
     start = time.perf_counter()
     check_seeds(job.seeds)

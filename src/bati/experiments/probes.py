@@ -113,7 +113,7 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
     """Evaluate the run's final checkpoint under `probe` (or read the saved result); see the module."""
     from bati.config import TrainConfig
     from bati.evaluate import Evaluator
-    from bati.train import open_run
+    from bati.run_dir import open_run
 
     probe = probe.check()
     run_dir = Path(run_dir)

@@ -24,7 +24,7 @@ from bati.experiments.probes import Probe, run_probe
 from bati.experiments.sweep import Cell, Grid, SweepResult, expand, record_lock, sweep
 from bati.methods import training_of
 from bati.report.likelihood import has_task_table, likelihood_split_due, save_likelihood_split
-from bati.train import check_seeds
+from bati.run_dir import check_seeds
 
 SCALES = ("quick", "cpu", "paper")
 MUJOCO = ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")

@@ -5,7 +5,7 @@ A method owns its parameters (a pytree) and three pure functions:
 - `loss(params, batch, key) -> (loss, (z, metrics))`: the representation loss on a training
   batch, and the latent z (task_batch, latent_dim) that IQL receives (detached) for it;
 - `infer(params, context, key) -> z`: test time, from contexts alone (K, C, ...) -> (K, latent_dim).
-The training step (bati.train) differentiates `loss`, updates the method and IQL together.
+The training step (bati.trainer) differentiates `loss`, updates the method and IQL together.
 
 A training batch holds, per task of the batch (T tasks x B transitions): task_ids (T,),
 task_arrays (T, task_dim), observations, actions, rewards, next_observations (T, B, ...), and on

@@ -1,0 +1,312 @@
+"""Run directories: what runs of a config train on, claiming and checking their directories, resuming their
+records, their summaries (eval.json), and opening a finished run again.
+
+A run directory holds config.json (the resolved config; a directory belongs to one), metrics.jsonl and
+eval.jsonl (one line per log / evaluation step), checkpoint.msgpack, eval.json (the summary) and, on your own
+datasets, datasets.json (their sha256). Methods evaluated alongside a run (bati-r, bati-auto beside bati:
+`TaskInference.trains_as`) have sibling directories `<method>-seed<s>` that end up as those of a run trained
+alone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from bati.checkpoints import CHECKPOINT_NAME, load_checkpoint
+from bati.config import NOT_IDENTITY, TrainConfig, differing_settings, family_of
+from bati.data import FamilyData, ensure_family_data, load_family_data
+from bati.data.own import load_own_data
+from bati.device import describe_device
+from bati.errors import BatiError
+from bati.experts import load as load_expert
+from bati.io import (
+    LOCK_NAME,
+    atomic_write_json,
+    atomic_write_text,
+    check_directory,
+    check_run_config,
+    code_record,
+    hold_lock,
+    read_jsonl,
+    read_jsonl_lines,
+    read_run_config,
+)
+from bati.trainer import Trainer, TrainState
+
+__all__ = ["FinishedRun", "RunInputs", "TrainingError", "check_seeds", "claim_run_dirs", "companion_configs",
+           "drop_records_after", "follows", "open_run", "own_env", "summarize_run"]
+
+DATASETS_RECORD = "datasets.json"
+
+
+class TrainingError(BatiError, RuntimeError):
+    """Training cannot go on (e.g. a NaN loss); earlier checkpoints are left untouched."""
+
+
+def check_seeds(seeds) -> tuple[int, ...]:
+    """The seeds as a tuple, or ValueError unless they are distinct integers >= 0, at least one."""
+    seeds = tuple(seeds)
+    if not seeds or len(set(seeds)) != len(seeds) or any(not isinstance(s, int) or s < 0 for s in seeds):
+        raise ValueError(f"seeds must be distinct integers >= 0 (at least one), got {list(seeds)}")
+    return seeds
+
+
+def companion_configs(configs: list[TrainConfig], also) -> list[list[TrainConfig]]:
+    """For each run's config, those of the methods `also` evaluated alongside it in sibling directories; ValueError
+    (one line) for a method that trains otherwise, or runs that are not a sweep's `<method>-seed<s>`."""
+    from bati.methods import METHODS, training_of
+
+    config, also = configs[0], tuple(dict.fromkeys(also))
+    for method in also:
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r} to evaluate alongside; choose from: {', '.join(METHODS)}")
+        if method == config.method or training_of(method) != training_of(config.method):
+            raise ValueError(f"{method!r} does not train exactly as {config.method!r}, so it cannot be evaluated "
+                             "alongside it (methods that share a training: bati, bati-r, bati-auto)")
+    if also and config.datasets:
+        raise ValueError("evaluating methods alongside a run needs a family's p_train and p_test contexts, not your "
+                         "own datasets: train each method on its own")
+    for c in configs if also else ():
+        if c.out_dir.name != f"{c.method}-seed{c.seed}":
+            raise ValueError(f"evaluating methods alongside a run needs the sweep's run directories, named "
+                             f"<method>-seed<seed>, not {c.out_dir.name!r}")
+    return [[replace(c, method=m, out_dir=c.out_dir.parent / f"{m}-seed{c.seed}").resolved() for m in also]
+            for c in configs]
+
+
+def follows(companion: TrainConfig, run_dir: Path, step: int) -> bool:
+    """Whether `companion` is evaluated alongside the run in `run_dir` (at `step`) from here: not finished, no
+    checkpoint of its own, and exactly the run's evaluations so far (none for a fresh run); its records after
+    the run's step are dropped."""
+    out = companion.out_dir
+    if (out / "eval.json").exists() or (out / CHECKPOINT_NAME).exists():
+        return False
+
+    def steps(directory: Path) -> list[int]:
+        path = directory / "eval.jsonl"
+        return [r["step"] for r in read_jsonl(path, require=("step",))] if path.exists() else []
+
+    if [s for s in steps(out) if s <= step] != steps(run_dir):
+        return False
+    drop_records_after(out, step)
+    return True
+
+
+@contextlib.contextmanager
+def claim_run_dirs(configs: list[TrainConfig]):
+    """Hold the run directories of `configs` (locks) while training: each is checked before anything is written
+    (a file in its place, an unwritable data root, a directory of another config: one line), and one this
+    call creates is forgotten again if it fails before its first record."""
+    _check_paths(configs)
+    with contextlib.ExitStack() as claimed:
+        for c in configs:
+            claimed.enter_context(hold_lock(c.out_dir / LOCK_NAME, f"the run directory {c.out_dir}"))
+            claimed.enter_context(_forgotten_unless_started(c.out_dir))
+            _check_run_dir(c.out_dir, c)
+        yield
+
+
+def _check_paths(configs: list[TrainConfig]) -> None:
+    """Refuse run directories and a data root that are files (or unwritable where we must write) with
+    one line, before anything is written anywhere."""
+    from bati.data import store
+
+    for c in configs:
+        check_directory(c.out_dir, "the run directory")
+    c = configs[0]
+    if c.datasets:  # a user's own datasets: read, never written
+        return
+    collection = store.collection_dir(c.data_root, family_of(c.family), c.data_scale, c.data_seed, c.noise,
+                                      c.task_split(), c.experts)
+    check_directory(c.data_root, "the data root", writable=not (collection / store.MANIFEST).is_file())
+
+
+@contextlib.contextmanager
+def _forgotten_unless_started(out: Path):
+    """A run directory this call creates is removed again if it fails before its first record (e.g. no
+    data, Ctrl-C while collecting): the next attempt may then use other settings without being refused."""
+    fresh = not (out / "config.json").exists()
+    try:
+        yield
+    except BaseException:
+        left = {p.name for p in out.iterdir()} if out.is_dir() else set()
+        if fresh and left <= {"config.json", DATASETS_RECORD, LOCK_NAME}:
+            (out / "config.json").unlink(missing_ok=True)
+            (out / DATASETS_RECORD).unlink(missing_ok=True)
+        raise
+
+
+def own_env(config: TrainConfig, data) -> tuple:
+    """(family, episode length) of the user's --eval-env for a run on own data, or () without one; EnvError
+    (one line) if its spaces do not match the data's."""
+    if config.eval_env is None:
+        return ()
+    from bati.data.own import EnvError, OwnFamily, check_eval_env
+
+    length = check_eval_env(config.eval_env, config.task_key)
+    family = OwnFamily(config.context_length, config.eval_env, config.task_key)
+    probe = family.make_env(data.train_tasks[0])
+    try:
+        shapes = (probe.observation_space.shape, probe.action_space.shape)
+        if shapes != ((data.obs_dim,), (data.action_dim,)):
+            raise EnvError(f"--eval-env {config.eval_env!r} has observations {shapes[0]} and actions {shapes[1]}, "
+                           f"but your datasets have ({data.obs_dim},) and ({data.action_dim},)")
+        try:  # once before any work: an env that cannot reset fails now, not at the first evaluation
+            probe.reset(seed=0)
+        except Exception as err:  # the user's env's own error
+            raise EnvError(f"--eval-env {config.eval_env!r} failed to reset to your first task "
+                           f"({type(err).__name__}: {err})") from err
+    finally:
+        probe.close()
+    return family, length
+
+
+def check_datasets_unchanged(out: Path, fingerprint: dict[str, str]) -> None:
+    """Record your datasets' sha256 with the run (datasets.json) or, when it has them, refuse to go on if
+    they changed since: a resumed run would train on two versions of its data."""
+    path = out / DATASETS_RECORD
+    if path.is_file():
+        recorded = json.loads(path.read_text())
+        changed = sorted(d for d in set(recorded) | set(fingerprint) if recorded.get(d) != fingerprint.get(d))
+        if changed:
+            raise TrainingError(f"{out}: your dataset(s) {', '.join(changed)} changed since this run started "
+                                f"(sha256 in {path}); restore them or train into another --out-dir")
+        return
+    atomic_write_json(path, fingerprint)
+
+
+@dataclass
+class RunInputs:
+    """What runs of one config train on, resolved once at the entry point and passed down: the family
+    (an OwnFamily for your own datasets), the data and the family's expert (None on your own data)."""
+
+    config: TrainConfig
+    family: object
+    data: FamilyData
+    expert: object | None
+
+    @classmethod
+    def resolve(cls, config: TrainConfig, show_progress: bool = True, collect: bool = True) -> RunInputs:
+        """The inputs of a resolved config: its data collected if missing (`collect`) or read as it is."""
+        family = family_of(config.family, config.context_length)
+        if config.datasets:
+            data = load_own_data(config.datasets, config.task_key, config.context_length, config.held_out,
+                                 seed=config.data_seed)
+            if config.task_batch > len(data.train_tasks):
+                raise ValueError(f"task_batch ({config.task_batch}) must be at most the {len(data.train_tasks)} tasks "
+                                 "of your datasets: give --task-batch")
+            return cls(config, family, data, None)
+        from bati.methods import METHODS
+
+        # training needs the expert (collection, reference returns): none is one line now, not after training;
+        # a finished run is opened without it unless its method imitates it (DPT)
+        needs_expert = collect or METHODS[config.method].needs_expert_actions
+        expert = load_expert(config.family, config.zoo_dir, config.experts) if needs_expert else None
+        if collect:
+            data = ensure_family_data(family, config.data_scale, config.data_seed, config.noise,
+                                      config.data_root, n_episodes=config.episodes_per_task,
+                                      n_context_episodes=config.context_episodes, progress=show_progress,
+                                      tasks=config.task_split(), zoo_dir=config.zoo_dir, experts=config.experts)
+        else:
+            data = load_family_data(family, config.data_scale, config.data_seed, config.noise,
+                                    config.data_root, tasks=config.task_split(), experts=config.experts)
+        return cls(config, family, data, expert)
+
+    def trainer(self) -> Trainer:
+        return Trainer(self.config, self.data, self.family, self.expert)
+
+
+@dataclass
+class FinishedRun:
+    """A run opened again from its directory (`open_run`): its resolved config, inputs, trainer (the method
+    and IQL) and the state of its last checkpoint."""
+
+    run_dir: Path
+    inputs: RunInputs
+    trainer: Trainer
+    state: TrainState
+
+    @property
+    def config(self) -> TrainConfig:
+        return self.inputs.config
+
+    @property
+    def data(self) -> FamilyData:
+        return self.inputs.data
+
+    @property
+    def step(self) -> int:
+        return int(self.state.step)
+
+
+def open_run(run_dir: Path, finished: bool = False) -> FinishedRun:
+    """The run in `run_dir` at its last checkpoint, on the data it was trained on (read, never collected):
+    the one way inference (bati infer, novelty) and probes open a run. ValueError naming the directory
+    when it holds no run config or no checkpoint, or (with `finished`) when the run has not reached its
+    last step."""
+    run_dir = Path(run_dir)
+    config = TrainConfig.from_record(read_run_config(run_dir)).resolved()
+    checkpoint = run_dir / CHECKPOINT_NAME
+    if not checkpoint.is_file():
+        raise ValueError(f"{run_dir} has no checkpoint: train (or resume) the run first")
+    inputs = RunInputs.resolve(config, show_progress=False, collect=False)
+    trainer = inputs.trainer()
+    state = load_checkpoint(checkpoint, trainer.init(jax.random.PRNGKey(0)))
+    if finished and int(state.step) != config.steps:
+        raise ValueError(f"{run_dir} is at step {int(state.step)} of {config.steps}: finish the run first")
+    return FinishedRun(run_dir, inputs, trainer, state)
+
+
+def summarize_run(out: Path, last: int = 5) -> dict:
+    """The paper's number: mean of the last `last` evaluations, per context distribution."""
+    evals = read_jsonl(out / "eval.jsonl", require=("step",))
+    if not evals:
+        raise ValueError(f"{out / 'eval.jsonl'} holds no evaluation; resume the run to redo them")
+    config = read_run_config(out)
+    tail = evals[-last:]
+    summary = {"family": config["family"], "method": config["method"], "seed": config["seed"],
+               "scale": config["scale"], "steps": evals[-1]["step"], "evaluations_averaged": len(tail)}
+    for source in ("p_test", "p_train") if "p_test_return" in evals[-1] else ():  # own data: no env, no returns
+        summary[f"{source}_return"] = float(np.mean([e[f"{source}_return"] for e in tail]))
+        summary[f"{source}_inference_error"] = float(np.mean([e[f"{source}_inference_error"] for e in tail]))
+        summary[f"{source}_task_returns"] = evals[-1][f"{source}_task_returns"]
+    for name in ("held_out_inference_accuracy", "held_out_representation_loss", "held_out_return"):  # own data's
+        if name in evals[-1]:
+            summary[name] = float(np.mean([e[name] for e in tail]))
+    if "held_out_task_returns" in evals[-1]:
+        summary["held_out_task_returns"] = evals[-1]["held_out_task_returns"]
+    curve_keys = ("step", "p_test_return", "p_train_return", "p_test_inference_error", "p_train_inference_error",
+                  "held_out_inference_accuracy", "held_out_representation_loss", "held_out_return")
+    summary["curve"] = [{k: e[k] for k in curve_keys if k in e} for e in evals]
+    # a method's own numbers (e.g. BATI-auto's calibrated state weight), averaged like the returns
+    extra = [k for k, v in evals[-1].items() if k not in curve_keys and isinstance(v, (int, float))
+             and all(isinstance(e.get(k), (int, float)) for e in tail)]
+    if extra:
+        summary["diagnostics"] = {k: float(np.mean([e[k] for e in tail])) for k in extra}
+    summary["config"] = {k: v for k, v in config.items() if k != "runtime"}
+    return summary
+
+
+def _check_run_dir(out: Path, config: TrainConfig) -> None:
+    """A run directory belongs to one resolved config: refuse to resume a run that differs in any setting."""
+    current = config.record()
+    identity = tuple(k for k in current if k not in NOT_IDENTITY)
+    runtime = {"device": describe_device(), "jax_version": jax.__version__, **code_record()}
+    check_run_config(out / "config.json", {**current, "runtime": runtime}, identity, differing_settings)
+
+
+def drop_records_after(out: Path, step: int) -> None:
+    """Forget log lines written after the checkpoint we resume from (they will be redone)."""
+    for name in ("metrics.jsonl", "eval.jsonl"):
+        path = out / name
+        if path.exists():  # a torn last line (a kill mid-append) is dropped with a warning
+            text = "".join(line + "\n" for line, record in read_jsonl_lines(path, require=("step",))
+                           if record["step"] <= step)
+            if text.encode() != path.read_bytes():
+                atomic_write_text(path, text)
