@@ -19,12 +19,12 @@ from bati.config import (
     digest_view,
     family_of,
     method_sections,
-    upgrade_record,
 )
 from bati.envs import EPISODE_LENGTH, FAMILY_NAMES, family_available, get_family
 from bati.experiments.sweep import Grid, SweepError, config_digest
 from bati.methods import METHODS
 from bati.methods.csro import CSROConfig
+from bati.records import VERSION_KEY, read_record
 from bati.rl.iql import IQLConfig
 
 RESULTS = Path(__file__).parent.parent / "results"
@@ -90,9 +90,10 @@ def test_an_old_record_upgrades_to_the_same_run():
     config = TrainConfig(family="HopperParam", method="csro").resolved()
     old = config.record()
     old.pop("csro")  # before method sections existed
+    old.pop(VERSION_KEY)  # and records named their version
     old["iql"] = {("beta" if k == "temperature" else k): v for k, v in old["iql"].items()}
     old["rl_hidden_dims"] = old["iql"]["hidden_dims"]
-    assert upgrade_record(old)["iql"]["temperature"] == 0.05 and "rl_hidden_dims" not in upgrade_record(old)
+    assert read_record(old)["iql"]["temperature"] == 0.05 and "rl_hidden_dims" not in read_record(old)
     # CSRO drew CLUB's negatives from any task before the setting existed: that is the run it was
     then = dataclasses.replace(config, csro=dataclasses.replace(config.csro, club_negatives="any-task")).record()
     assert differing_settings(old, then, [k for k in then if k not in NOT_IDENTITY]) == []
@@ -108,7 +109,8 @@ def test_method_settings_added_later_keep_old_runs_and_their_digests():
         new = config.record()
         old = json.loads(json.dumps(new))
         old[key].pop("distance")
-        assert upgrade_record(old)[key] == new[key]
+        old.pop(VERSION_KEY)  # a record written before records named their version
+        assert read_record(old)[key] == new[key]
         assert differing_settings(old, new, [k for k in new if k not in NOT_IDENTITY]) == []
         other = dataclasses.replace(config, **{key: dataclasses.replace(getattr(config, key), push_weight=2.0)})
         with_field = other.record()
@@ -118,6 +120,23 @@ def test_method_settings_added_later_keep_old_runs_and_their_digests():
         root_mean = dataclasses.replace(config, **{key: dataclasses.replace(getattr(config, key), distance="root-mean")})
         assert differing_settings(old, root_mean.record(), [key]) == [key]
         assert config_digest(root_mean) != config_digest(config)
+
+
+def test_a_record_names_its_version_which_is_not_part_of_the_runs_identity():
+    """config.json names the version of its format; a record without one is version 1 and is read as the
+    older versions wrote it: the same run, the same digest."""
+    config = TrainConfig(family="HopperParam", method="csro").resolved()
+    record = config.record()
+    assert record[VERSION_KEY] == 2 and VERSION_KEY in NOT_IDENTITY
+    version_1 = {k: v for k, v in record.items() if k != VERSION_KEY}
+    assert read_record(version_1) == record and digest_view(version_1) == digest_view(record)
+    assert differing_settings(version_1, record, list(record)) == []
+    # a setting missing from a version-1 record is its value before it existed; a version-2 record has them all
+    for recorded, negatives in ((version_1, "any-task"), (record, "same-task")):
+        csro = {k: v for k, v in recorded["csro"].items() if k != "club_negatives"}
+        assert TrainConfig.from_record({**recorded, "csro": csro}).csro.club_negatives == negatives
+    with pytest.raises(ValueError, match="record_version must be an integer, got 'two'"):
+        TrainConfig.from_record({**record, VERSION_KEY: "two"})
 
 
 def test_committed_run_directories_keep_their_digests(monkeypatch):

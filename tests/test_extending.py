@@ -4,6 +4,7 @@ collect -> train -> evaluate with every method, with one env file, one record an
 from __future__ import annotations
 
 import json
+import os
 import textwrap
 
 import gymnasium as gym
@@ -131,6 +132,61 @@ def test_an_experiment_plans_runs_and_reports_a_family_of_your_own_with_the_pape
     config = json.loads(next((tmp_path / "results" / "LineGoal").rglob("config.json")).read_text())
     assert config["zoo_dir"] == str(tmp_path / "zoo")  # --zoo-dir reaches the cells (not part of their identity)
     assert "--zoo-dir" in job.command_line(whole=True)
+
+
+METHOD_OF_ONES_OWN = textwrap.dedent('''
+    from dataclasses import dataclass
+
+    from bati.methods import METHODS
+    from bati.methods.oracle import Oracle
+
+
+    @dataclass(frozen=True)
+    class MineConfig:
+        """Mine's settings."""
+
+        weight: float = 1.0
+        """How much it weighs."""
+
+
+    class Mine(Oracle):
+        Config = MineConfig
+        config_key = "mine"
+
+
+    METHODS["mine"] = Mine  # before bati.config is imported: TrainConfig then has the section `mine`
+''')
+
+
+def test_a_registered_method_gets_its_section_of_train_config():
+    """A method is one file plus one registry entry: its Config becomes TrainConfig's section named by its
+    config_key (an option group of `bati train`, recorded in config.json, a dotted setting of sweeps)."""
+    import subprocess
+    import sys
+
+    check = textwrap.dedent("""
+        import contextlib, io, json
+        import tyro
+        from bati.cli import Train
+        from bati.config import TrainConfig, apply_settings, method_sections
+
+        assert method_sections()["mine"] is MineConfig and TrainConfig().mine == MineConfig()
+        parsed = tyro.cli(Train, args=["--method", "mine", "--mine.weight", "3"])
+        assert parsed.mine == MineConfig(weight=3.0)
+        config = apply_settings(TrainConfig(method="mine"), {"mine.weight": 2}).resolved()
+        assert config.record()["mine"] == {"weight": 2.0}
+        assert TrainConfig.from_record(config.record()).resolved() == config
+        assert "mine" not in TrainConfig(method="bati").resolved().record()
+        shown = io.StringIO()
+        with contextlib.redirect_stdout(shown), contextlib.suppress(SystemExit):
+            tyro.cli(Train, args=["--help"])
+        print(json.dumps(shown.getvalue()))
+    """)
+    done = subprocess.run([sys.executable, "-c", METHOD_OF_ONES_OWN + check], capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "COLUMNS": "200"}, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
+    shown = json.loads(done.stdout.strip().splitlines()[-1])
+    assert "mine options" in shown and "Mine's settings." in shown and "--mine.weight FLOAT" in shown
 
 
 def test_main_and_noise_plan_pointgoal_the_default_family_of_bati_run(tmp_path):

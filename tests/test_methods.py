@@ -17,6 +17,7 @@ from bati.methods import MethodSpec, make_method
 from bati.methods.bati import BATI, BATIConfig
 from bati.methods.csro import CSROConfig
 from bati.methods.dynamics import reconstruction_nll, transition_targets
+from bati.records import VERSION_KEY
 
 SPEC = MethodSpec(obs_dim=2, action_dim=1, task_dim=1, n_train_tasks=4, latent_dim=3,
                   encoder_dims=(32, 32), decoder_dims=(32, 32))
@@ -226,9 +227,9 @@ def test_tanh_encoder_bounds_each_transition_before_the_mean():
 
 
 def test_er_trl_bounds_its_latents_as_the_code_and_reads_old_runs_as_unbounded():
-    from bati.config import upgrade_record
     from bati.methods.er_trl import ERTRLConfig
     from bati.methods.focal import FOCALConfig
+    from bati.records import read_record
 
     assert ERTRLConfig().latent_activation == "tanh" and FOCALConfig().latent_activation == "none"
     assert CSROConfig().latent_activation == "none"
@@ -241,13 +242,15 @@ def test_er_trl_bounds_its_latents_as_the_code_and_reads_old_runs_as_unbounded()
     assert float(jnp.abs(z).max()) <= 1.0
     config = TrainConfig(family="AntDir", method="er-trl").resolved()
     old = json.loads(json.dumps(config.record()))
+    del old[VERSION_KEY]  # a record written before records named their version
     old["ertrl"].pop("latent_activation")  # recorded before the setting existed: unbounded latents
-    assert upgrade_record(old)["ertrl"] == {**config.record()["ertrl"], "latent_activation": "none"}
+    assert read_record(old)["ertrl"] == {**config.record()["ertrl"], "latent_activation": "none"}
     assert TrainConfig.from_record(old).ertrl.latent_activation == "none"
     assert differing_settings(old, config.record(), ["ertrl"]) == ["ertrl"]
     # a FOCAL run recorded before the setting is today's FOCAL, in the same directory
     focal = TrainConfig(family="AntDir", method="focal").resolved()
     old_focal = json.loads(json.dumps(focal.record()))
+    del old_focal[VERSION_KEY]  # a record written before records named their version
     old_focal["focal"].pop("latent_activation")
     assert differing_settings(old_focal, focal.record(), ["focal"]) == []
     assert digest_view(old_focal) == digest_view(focal.record())
@@ -303,18 +306,19 @@ def test_only_any_task_negatives_penalise_latents_that_carry_the_task():
 
 
 def test_csro_runs_recorded_before_the_negatives_setting_are_read_as_any_task():
-    from bati.config import upgrade_record
+    from bati.records import read_record
     from bati.report.runs import _comparable
 
     config = TrainConfig(family="HopperParam", method="csro").resolved()
     assert config.csro.club_negatives == "same-task"
     new = config.record()
     old = json.loads(json.dumps(new))
+    del old[VERSION_KEY]  # a record written before records named their version
     old["csro"].pop("club_negatives")
-    assert upgrade_record(old)["csro"] == {**new["csro"], "club_negatives": "any-task"}
+    assert read_record(old)["csro"] == {**new["csro"], "club_negatives": "any-task"}
     assert TrainConfig.from_record(old).csro.club_negatives == "any-task"
     before_sections = {k: v for k, v in old.items() if k != "csro"}
-    assert upgrade_record(before_sections)["csro"]["club_negatives"] == "any-task"
+    assert read_record(before_sections)["csro"]["club_negatives"] == "any-task"
     # the report keeps them apart: any-task CSRO is a setting of its own, today's default is not
     assert "csro" in _comparable(old) and "csro" not in _comparable(new)
     with pytest.raises(ValueError, match="csro.club_negatives must be 'same-task' or 'any-task', got 'all'"):
@@ -593,8 +597,8 @@ def test_er_trl_entropy_term_reaches_the_encoder_only():
 
 
 def test_er_trl_weights_focal_term_as_the_code_and_reads_old_runs_as_weight_one():
-    from bati.config import upgrade_record
     from bati.methods.er_trl import ERTRLConfig
+    from bati.records import read_record
 
     batch, key = _baseline_batch(), jax.random.PRNGKey(1)
 
@@ -610,6 +614,7 @@ def test_er_trl_weights_focal_term_as_the_code_and_reads_old_runs_as_weight_one(
         ERTRLConfig(metric_weight=-1.0).check()
     config = TrainConfig(family="AntDir", method="er-trl").resolved()
     old = json.loads(json.dumps(config.record()))
+    del old[VERSION_KEY]  # a record written before records named their version
     old["ertrl"].pop("metric_weight")  # recorded before the setting existed: FOCAL's term at weight 1
-    assert upgrade_record(old)["ertrl"] == {**config.record()["ertrl"], "metric_weight": 1.0}
+    assert read_record(old)["ertrl"] == {**config.record()["ertrl"], "metric_weight": 1.0}
     assert TrainConfig.from_record(old).ertrl.metric_weight == 1.0

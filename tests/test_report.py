@@ -369,7 +369,7 @@ def test_a_full_disk_names_the_report_directory_and_keeps_the_previous_report(re
 
 
 def test_a_method_setting_off_its_default_is_a_table_of_its_own_named_by_it(tmp_path):
-    from bati.config import default_method_record
+    from bati.records import default_method_record
 
     root = tmp_path / "runs"
     today = default_method_record("PointGoal", "csro")  # club_negatives "same-task"

@@ -1,10 +1,9 @@
 """`TrainConfig`: everything a training run is, as one dataclass (the CLI is this dataclass, via tyro).
 
-A run directory's config.json is `config.record()`: the resolved config with only the run's own
-method's hyperparameters. A run's identity is that record, where it lives aside (NOT_IDENTITY).
-Runs recorded by older versions stay valid: `upgrade_record` maps their renamed fields, settings
-added later count as the value older runs used, and `digest_view` keeps sweep digests (the names of
-run directories) unchanged for configs that older versions could express.
+Its last fields are the methods' hyperparameter sections, one per `config_key` of the methods in
+`bati.methods.METHODS` when this module is imported. A run directory's config.json is `config.record()`:
+the resolved config with only the run's own method's hyperparameters. A run's identity is that record,
+where it lives aside (NOT_IDENTITY). Records of older versions are read by `bati.records`.
 """
 
 from __future__ import annotations
@@ -13,18 +12,23 @@ import json
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from functools import cache
 from pathlib import Path
-from typing import Any, Literal, get_args, get_type_hints
+from typing import Annotated, Any, Literal, get_args, get_type_hints
+
+import tyro
 
 from bati.checks import check_finite_fields, check_hidden_dims, check_integer, check_number
 from bati.data.own import OWN_FAMILY
 from bati.envs import TaskSplit
 from bati.io import read_run_config
-from bati.methods.bati import BATIConfig
-from bati.methods.csro import CSROConfig
-from bati.methods.dpt import DPTConfig
-from bati.methods.er_trl import ERTRLConfig
-from bati.methods.focal import FOCALConfig
-from bati.methods.unicorn import UNICORNConfig
+from bati.methods import METHODS
+from bati.records import (  # noqa: F401 (differing_settings, digest_view: imported from here by others)
+    RECORD_ONLY,
+    RECORD_VERSION,
+    VERSION_KEY,
+    differing_settings,
+    digest_view,
+    read_record,
+)
 from bati.rl.iql import TABLE3_HIDDEN_DIMS, IQLConfig
 from bati.sinks import check_sinks
 
@@ -63,7 +67,34 @@ def get_scale(name: str) -> Scale:
     return SCALES[name]
 
 
+def _section_methods() -> dict[str, type]:
+    """Each hyperparameter section of the methods in METHODS, in its order: `config_key` -> the first method
+    declaring it (bati, bati-r and bati-auto share `bati`, and so its Config)."""
+    first = {}
+    for name, cls in METHODS.items():
+        if cls.config_key is not None and first.setdefault(cls.config_key, cls).Config is not cls.Config:
+            raise TypeError(f"{name} reads the section {cls.config_key!r} with a Config of its own "
+                            f"({cls.Config.__name__}, not {first[cls.config_key].Config.__name__})")
+    return first
+
+
+_SECTION_METHODS = _section_methods()
+
+
+def with_method_sections(cls: type) -> type:
+    """`cls`, before it becomes a dataclass, with a field per hyperparameter section at its end holding the
+    section's Config (helped in `bati train --help` by the method's `config_help`, else the Config's docstring)."""
+    for key, method in _SECTION_METHODS.items():
+        kind = method.Config
+        if method.config_help is not None:
+            kind = Annotated[kind, tyro.conf.arg(help=method.config_help)]
+        cls.__annotations__[key] = kind
+        setattr(cls, key, field(default_factory=method.Config))
+    return cls
+
+
 @dataclass
+@with_method_sections
 class TrainConfig:
     family: str | None = None
     """The task family (default: PointGoal; with --datasets: `own`, your data)."""
@@ -141,28 +172,19 @@ class TrainConfig:
     log_to: tuple[str, ...] = ()
     """Also log to: tensorboard (`pip install 'bati[tensorboard]'`), wandb (`pip install 'bati[wandb]'`);
     the JSONL files are always written. Not part of the run's identity."""
-
-    # Each method's hyperparameters (only the run's own method's are recorded in config.json).
-    bati: BATIConfig = field(default_factory=BATIConfig)
-    """bati, bati-r and bati-auto."""
-    focal: FOCALConfig = field(default_factory=FOCALConfig)
-    unicorn: UNICORNConfig = field(default_factory=UNICORNConfig)
-    csro: CSROConfig = field(default_factory=CSROConfig)
-    dpt: DPTConfig = field(default_factory=DPTConfig)
-    ertrl: ERTRLConfig = field(default_factory=ERTRLConfig)
-    """er-trl (FOCAL's settings plus its behaviour-entropy term)."""
+    # Then each method's hyperparameters (`with_method_sections`; config.json records the run's own method's).
 
     # --- reading and writing ------------------------------------------------------------------
     @classmethod
     def from_record(cls, record: dict) -> TrainConfig:
-        """The config a run directory's config.json records (lists back to tuples; `runtime` and keys
-        this version does not know are ignored; older records are upgraded first). A section that is not an
-        object of settings is one ValueError."""
-        for name in ("iql", *method_sections()):
+        """The config a run directory's config.json records, of any version (`read_record`; lists back to
+        tuples; `runtime` and keys this version does not know are ignored). A section that is not an object of
+        settings is one ValueError."""
+        for name in nested_sections():
             if name in record and not isinstance(record[name], dict):
                 raise ValueError(f"config setting {name!r} must be an object of settings, got "
                                  f"{type(record[name]).__name__} {record[name]!r}")
-        record = upgrade_record(record)
+        record = read_record(record)
         kinds = {f.name: f for f in fields(cls)}
         values = {k: _tuples(v) for k, v in record.items() if k in kinds}
         for name, section in method_sections().items():
@@ -194,6 +216,7 @@ class TrainConfig:
         record = json.loads(json.dumps(values, default=str))
         if self.family not in (None, OWN_FAMILY):  # the env's version is part of what the run trained on
             record["family_version"] = family_of(self.family).record.version
+        record[VERSION_KEY] = RECORD_VERSION
         return record
 
     def task_split(self) -> TaskSplit:
@@ -216,8 +239,6 @@ class TrainConfig:
     def resolved(self) -> TrainConfig:
         """Every default filled in (an explicit default and None give the same config) and every value
         checked, before any work: ValueError / TaskError with one line naming the setting."""
-        from bati.methods import METHODS
-
         own = bool(self.datasets)
         if own and self.family not in (None, OWN_FAMILY):
             raise ValueError(f"--datasets trains on your own data (family {OWN_FAMILY!r}), not on {self.family}: "
@@ -412,14 +433,11 @@ def family_of(name: str, context_length: int | None = None):
 
 def method_sections() -> dict[str, type]:
     """TrainConfig's per-method fields: name -> the Config dataclass it holds."""
-    return {"bati": BATIConfig, "focal": FOCALConfig, "unicorn": UNICORNConfig, "csro": CSROConfig,
-            "dpt": DPTConfig, "ertrl": ERTRLConfig}
+    return {key: method.Config for key, method in _SECTION_METHODS.items()}
 
 
 def section_readers(section: str) -> list[str]:
     """The methods that read the hyperparameter section `section` (e.g. bati, bati-r and bati-auto read `bati`)."""
-    from bati.methods import METHODS
-
     return [name for name, cls in METHODS.items() if cls.config_key == section]
 
 
@@ -440,8 +458,6 @@ def check_foreign_sections(config: TrainConfig, record) -> None:
 
 def method_config_key(method: str) -> str | None:
     """The TrainConfig field holding `method`'s hyperparameters (None: it has none, or is unknown)."""
-    from bati.methods import METHODS
-
     cls = METHODS.get(method)
     return None if cls is None else cls.config_key
 
@@ -462,97 +478,6 @@ def _dataclass_from(cls, values: dict):
     return cls(**{k: _tuples(v) for k, v in values.items() if k in names})
 
 
-# Keys a config.json holds that are not TrainConfig fields: what the run recorded about itself, and old names.
-RECORD_ONLY = frozenset({"runtime", "family_version", "rl_hidden_dims"})
-
-# --- identity across versions ----------------------------------------------------------------
-# Where a run lives is not what it is: these fields may differ when a run directory is moved or resumed.
-NOT_IDENTITY = ("out_dir", "data_root", "log_to", "zoo_dir", "eval_workers", "eval_beside_training")
-# Fields added to TrainConfig after runs were recorded: a saved config without one had this value.
-LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": None, "test_task_range": None,
-                "datasets": [], "task_key": None, "held_out": 0.2, "eval_env": None, "family_version": 1,
-                "zoo_dir": None, "eval_beside_training": False, "experts": "conditioned"}
-# Method hyperparameters added after runs were recorded (in every section whose Config has the field): a
-# saved section without one had this value. (csro.club_negatives is not one: its old value is not its default.)
-LATER_METHOD_FIELDS = {"distance": "squared", "latent_activation": "none"}
-# Method hyperparameters added with a new default after runs were recorded: (method, section, field) -> the value a
-# saved run without the field had, which is not today's default (such runs are a setting of their own).
-CHANGED_METHOD_DEFAULTS = {("csro", "csro", "club_negatives"): "any-task", ("er-trl", "ertrl", "metric_weight"): 1.0,
-                           ("er-trl", "ertrl", "latent_activation"): "none"}
-
-
-def _without_later_method_fields(section: dict) -> dict:
-    return {k: v for k, v in section.items() if not (k in LATER_METHOD_FIELDS and v == LATER_METHOD_FIELDS[k])}
-
-
-def upgrade_record(record: dict) -> dict:
-    """A config.json written by an older version, in today's field names. Before the per-method
-    sections existed: IQL's temperature was called `beta`, and its hidden sizes were also recorded
-    as `rl_hidden_dims` (the same value, copied into iql.hidden_dims). CSRO runs recorded before
-    `csro.club_negatives` existed drew CLUB's negatives from any task (its default is now "same-task"); ER-TRL
-    runs recorded before `ertrl.metric_weight` existed weighted FOCAL's term 1 (its default is now the code's 10),
-    and those recorded before `ertrl.latent_activation` existed had unbounded latents (its default is now "tanh")."""
-    record = dict(record)
-    iql = record.get("iql")
-    if isinstance(iql, dict) and "beta" in iql:
-        iql = {("temperature" if k == "beta" else k): v for k, v in iql.items()}
-        record["iql"] = iql
-    record.pop("rl_hidden_dims", None)
-    for (method, key, name), old_value in CHANGED_METHOD_DEFAULTS.items():
-        if record.get("method") == method and name not in (record.get(key) or {}):
-            section = record.get(key) or default_method_record(record.get("family"), method)
-            record[key] = {**section, name: old_value}
-    for name, cls in method_sections().items():
-        section = record.get(name)
-        if isinstance(section, dict):
-            names = {f.name for f in fields(cls)}
-            record[name] = {**{k: v for k, v in LATER_METHOD_FIELDS.items() if k in names}, **section}
-    return record
-
-
-def later_value(key: str, current: dict) -> Any:
-    """What a config recorded before setting `key` existed had for it: LATER_FIELDS, or for a method's
-    hyperparameters the defaults for the current record's family."""
-    if key in LATER_FIELDS:
-        return LATER_FIELDS[key]
-    if key in method_sections():
-        return default_method_record(current.get("family"), current.get("method"))
-    return None
-
-
-def default_method_record(family: str | None, method: str | None) -> dict | None:
-    """The default hyperparameters of `method` on `family`, as config.json records them."""
-    key = method_config_key(method or "")
-    if key is None:
-        return None
-    section = _for_family(method_sections()[key](), family_of(family).record if family else None)
-    return json.loads(json.dumps(asdict(section), default=str))
-
-
-def differing_settings(saved: dict, current: dict, keys) -> list[str]:
-    """The keys whose saved and current values differ (the saved record upgraded first; a key added
-    later and absent from the saved config counts as its old value, `later_value`)."""
-    saved = upgrade_record(saved)
-
-    def old(k):
-        return saved[k] if k in saved else later_value(k, current)
-
-    return [k for k in keys if old(k) != current.get(k)]
-
-
-def digest_view(record: dict) -> dict:
-    """The record as the digest of a sweep cell sees it: settings added later at their old values are
-    left out and renamed ones take their old names, so a config that an older version could express
-    keeps its digest (and its run directory)."""
-    view = {k: v for k, v in record.items() if not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
-    for name in method_sections():
-        if isinstance(view.get(name), dict):
-            view[name] = _without_later_method_fields(view[name])
-            default = default_method_record(record.get("family"), record.get("method"))
-            if default is not None and view[name] == _without_later_method_fields(default):
-                view.pop(name)
-    iql = view.get("iql")
-    if isinstance(iql, dict):
-        view["iql"] = {("beta" if k == "temperature" else k): v for k, v in iql.items()}
-        view["rl_hidden_dims"] = iql.get("hidden_dims")
-    return view
+# Not what a run is: where it lives, how it is evaluated and logged (these may differ when a run directory is moved
+# or resumed), and the version of its record's format.
+NOT_IDENTITY = ("out_dir", "data_root", "log_to", "zoo_dir", "eval_workers", "eval_beside_training", VERSION_KEY)

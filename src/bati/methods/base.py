@@ -46,11 +46,14 @@ class TaskInference:
     A method with hyperparameters declares them as a frozen dataclass `Config` (every field with a
     typed default) and, if some values are bad, `check(section)` raising a one-line ValueError that names
     `section.<setting>`; `config_key` names the TrainConfig field that holds it (`bati train --csro.club-weight
-    2.5`), shared by variants of one method (bati, bati-r and bati-auto all read `bati`).
+    2.5`), shared by variants of one method (bati, bati-r and bati-auto all read `bati`). TrainConfig has one
+    such field per section of the methods in `bati.methods.METHODS`.
     """
 
     Config: ClassVar[type | None] = None
     config_key: ClassVar[str | None] = None
+    config_help: ClassVar[str | None] = None
+    """The help of the section's options in `bati train --help` (None: the Config's docstring)."""
     trains_as: ClassVar[str | None] = None
     """The method whose training this one's is, step for step (same init, loss and keys: bati-r and
     bati-auto train exactly as bati and differ only at test time). A sweep then trains one run of them and

@@ -50,6 +50,7 @@ class BATIConfig:
 class BATI(TaskInference):
     Config = BATIConfig
     config_key = "bati"
+    config_help = "bati, bati-r and bati-auto."
     reward_only_inference = False
 
     def __init__(self, spec: MethodSpec, config: BATIConfig | None = None):

@@ -90,6 +90,7 @@ def generator_loss(fake_logits: jax.Array) -> jax.Array:
 class ERTRL(FOCAL):
     Config = ERTRLConfig
     config_key = "ertrl"
+    config_help = "er-trl (FOCAL's settings plus its behaviour-entropy term)."
 
     def __init__(self, spec: MethodSpec, config: ERTRLConfig | None = None):
         super().__init__(spec, config)

@@ -239,11 +239,11 @@ def group_description(group: Group) -> str:
     lines.append(f"Steps: {steps:,} gradient steps{batch}." if steps else "Steps: not recorded.")
     data = group.data()
     if group.own_data:
-        from bati.config import LATER_FIELDS  # a setting at its default is left out of the record
+        from bati.config import TrainConfig  # held_out at its default is left out of the settings
 
         lines.append(f"Data: your datasets {', '.join(_datasets(group)) or '(not recorded)'}"
                      + (f", {_fmt_setting(data['transitions'])} transitions" if data and data.get("transitions")
-                        else "") + f"; held out: {_fmt_setting(s.get('held_out', LATER_FIELDS['held_out']))} of each task's "
+                        else "") + f"; held out: {_fmt_setting(s.get('held_out', TrainConfig.held_out))} of each task's "
                      "episodes (no simulator of your tasks: held-out metrics, not returns).")
     elif data:
         lines.append(f"Data: {data.get('n_episodes', '?')} episodes per training task, "

@@ -22,26 +22,13 @@ HELD_OUT_KEYS = ("held_out_inference_accuracy", "held_out_representation_loss", 
 
 
 def _comparable(config: dict) -> dict:
-    """A run's recorded config in today's names (older records upgraded), without its method's
-    hyperparameters where they are the method's defaults on its family: runs of different methods at
-    the same setting share a table, and a non-default one (e.g. csro.club_weight) is a setting: the
-    section keeps just the fields that differ from the defaults."""
-    from bati.config import LATER_FIELDS, default_method_record, method_sections, upgrade_record
+    """A run's recorded config in today's form (older records read by `bati.records`), without the settings at
+    the value runs had before they existed and its method's hyperparameters only where they differ from the
+    defaults on its family: runs of different methods at the same setting share a table, and a non-default one
+    (e.g. csro.club_weight) is a setting of its own, named in the table's title."""
+    from bati.records import read_record
 
-    # settings added later, at the value older runs had: absent from older records, so left out of all
-    config = {k: v for k, v in upgrade_record(config).items() if not (k in LATER_FIELDS and v == LATER_FIELDS[k])}
-    for name in method_sections():
-        if name in config:
-            try:
-                default = default_method_record(config.get("family"), config.get("method"))
-            except (ImportError, ValueError):  # a family not available here (its extra is missing)
-                continue
-            changed = {k: v for k, v in config[name].items() if default is None or default.get(k) != v}
-            if changed:
-                config[name] = changed  # only what differs from the defaults: the table's title names it
-            else:
-                config.pop(name)
-    return config
+    return read_record(config, compact=True)
 
 
 class ReportWarning(BatiWarning):
