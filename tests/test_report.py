@@ -457,3 +457,31 @@ def test_runs_from_code_with_uncommitted_changes_are_flagged(results, tmp_path):
     assert sorted(r.uncommitted_changes for r in load_runs(results)).count(True) == 2
     report = build_report(results, tmp_path / "report")
     assert "**2 run(s) from code with uncommitted changes**" in report["markdown"]
+
+
+TRAINING_MODULES = ("bati.inference", "bati.train", "bati.trainer", "bati.checkpoints", "bati.methods",
+                    "bati.evaluate", "bati.experiments")
+
+
+def test_the_report_layer_imports_nothing_from_training():
+    """bati.report reads result files only: no module of it imports (at the top or inside a function) the code
+    that trains, evaluates or opens checkpoints, nor the experiments built on top of it."""
+    import ast
+
+    import bati.report
+
+    package = Path(bati.report.__file__).parent
+    imports = []
+    for path in sorted(package.rglob("*.py")):
+        parts = ["bati", *path.relative_to(package.parent).parent.parts]  # the package the file is in
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                imports += [(path.name, alias.name) for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):  # `from bati import train` imports bati.train too
+                base = ".".join(parts[:len(parts) + 1 - node.level]) if node.level else ""  # relative imports
+                module = ".".join(filter(None, (base, node.module)))
+                imports += [(path.name, module)] + [(path.name, f"{module}.{alias.name}") for alias in node.names]
+    assert any(name.startswith("bati.") for _, name in imports)  # the walk sees bati's own imports
+    wrong = [(file, name) for file, name in imports
+             if any(name == module or name.startswith(module + ".") for module in TRAINING_MODULES)]
+    assert not wrong, wrong

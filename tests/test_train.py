@@ -172,11 +172,12 @@ def test_a_checkpoint_with_other_networks_is_refused(tmp_path, point_data):
 
 
 def test_likelihood_split_reports_errors_for_each_part_of_eq8(tmp_path, monkeypatch, point_data):
+    from bati.experiments import probes
     from bati.report import likelihood
 
     monkeypatch.setattr(run_dir_module, "load_family_data", lambda *a, **k: point_data)
     train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
-    report = likelihood.likelihood_split(tmp_path / "run", context_length=20)
+    report = probes.likelihood_split(tmp_path / "run", context_length=20)
     max_distance = 2.0  # PointGoal goals lie on the unit circle
     for source in ("p_train", "p_test"):
         for part in ("full", "reward", "state"):
@@ -185,21 +186,21 @@ def test_likelihood_split_reports_errors_for_each_part_of_eq8(tmp_path, monkeypa
     assert "| p_test | reward |" in likelihood.likelihood_split_markdown(report)
     # saved beside the run, and redone only for another step or context length while the checkpoint is there
     run_dir = tmp_path / "run"
-    assert likelihood.likelihood_split_due(run_dir, step=5, context_length=20)
-    saved = likelihood.save_likelihood_split(run_dir, context_length=20)
+    assert probes.likelihood_split_due(run_dir, step=5, context_length=20)
+    saved = probes.save_likelihood_split(run_dir, context_length=20)
     assert likelihood.read_likelihood_split(run_dir) == json.loads(json.dumps(saved))
     assert saved["step"] == 5 and saved["context_length"] == 20 and saved["commit"]
-    assert not likelihood.likelihood_split_due(run_dir, step=5, context_length=20)
-    assert likelihood.likelihood_split_due(run_dir, step=5, context_length=30)
+    assert not probes.likelihood_split_due(run_dir, step=5, context_length=20)
+    assert probes.likelihood_split_due(run_dir, step=5, context_length=30)
     (run_dir / "checkpoint.msgpack").unlink()  # a committed run whose machine is gone: nothing to redo it from
-    assert not likelihood.likelihood_split_due(run_dir, step=5, context_length=30)
+    assert not probes.likelihood_split_due(run_dir, step=5, context_length=30)
     (run_dir / "likelihood.json").write_text("{}")
     assert likelihood.read_likelihood_split(run_dir) is None
-    assert [m for m in ("bati", "bati-r", "bati-auto", "focal", "recon", "oracle") if likelihood.has_task_table(m)] \
+    assert [m for m in ("bati", "bati-r", "bati-auto", "focal", "recon", "oracle") if probes.has_task_table(m)] \
         == ["bati", "bati-r", "bati-auto"]
     train(_config(tmp_path, "recon", steps=5, eval_every=5, method="recon"), show_progress=False)
     with pytest.raises(ValueError, match="no task table"):
-        likelihood.likelihood_split(tmp_path / "recon", context_length=20)
+        probes.likelihood_split(tmp_path / "recon", context_length=20)
 
 
 def test_auroc_matches_hand_computation():

@@ -1,8 +1,12 @@
-"""Errors the CLI reports as one line (exit code 2) instead of a traceback."""
+"""Errors the CLI reports as one line instead of a traceback (exit code 2; a partial failure 1)."""
 
 
 class BatiError(Exception):
     """Base class of bati's user-facing errors that are not plain ValueErrors."""
+
+
+class PartialFailure(BatiError):
+    """Part of a command's work failed or was found damaged while the rest is done (exit code 1, not 2)."""
 
 
 class BatiWarning(UserWarning):

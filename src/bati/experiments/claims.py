@@ -570,3 +570,11 @@ def write_claims(root: Path = Path("."), out: Path | None = None) -> tuple[Path,
     command = "bati claims" + (f" --root {root}" if Path(root) != Path(".") else "")
     atomic_write_text(out, claims_markdown(findings, command))
     return out, [(claim, *overall(findings, claim)) for claim in CLAIMS]
+
+
+def write_and_show_claims(root: Path = Path("."), out: Path | None = None, *, console) -> None:
+    """`bati claims`: write the page, then each claim's verdict and where the page is on the rich `console`."""
+    out, verdicts = write_claims(root, out)
+    for claim, verdict, scale in verdicts:
+        console.print(f"{claim.name} {verdict} (at {scale}): {claim.text}", soft_wrap=True)
+    console.print(f"claims page: {out}")

@@ -2,7 +2,8 @@
 
 `ExperimentJob` is the command's settings (the CLI is this dataclass); `run_experiment_job` plans the
 experiment at its scale, runs what is not finished under the experiment's sweep record and writes its
-report over every finished cell of the experiment, trained by this command or another.
+report over every finished cell of the experiment, trained by this command or another;
+`run_and_show_experiment` is the command on a rich console (`bati experiment list`: `show_experiment_list`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,10 @@ from bati.config import ScaleName
 from bati.experiments.report import experiment_report
 from bati.experiments.specs import (SPECS, ExperimentResult, default_out_dir, describe, get_spec, plan_experiment,
                                     run_experiment, status_file)
-from bati.experiments.sweep import record_lock
+from bati.experiments.sweep import SweepFailed, record_lock
+
+WIDE = 120
+"""Console columns from which the titles fit in the list's table (narrower: below it, not in a column of 8)."""
 
 
 @dataclass
@@ -111,3 +115,54 @@ def experiment_list() -> list[dict]:
         rows.append({"name": spec.name, "paper": counts["quick"]["paper"], "title": spec.title,
                      "probes": counts["quick"]["probes"], "cells": {scale: c["cells"] for scale, c in counts.items()}})
     return rows
+
+
+def show_experiment_list(*, console) -> None:
+    """`bati experiment list`: every experiment's name, paper source, cells per scale, probes and title."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    table = Table(title="bati experiments (cells: runs at the quick / cpu / paper scale; probes: quick)")
+    table.add_column("name", no_wrap=True)
+    table.add_column("paper", no_wrap=True)
+    for column in ("quick", "cpu", "paper", "probes"):
+        table.add_column(column, justify="right", no_wrap=True)
+    rows = experiment_list()
+    wide = console.width >= WIDE
+    if wide:
+        table.add_column("what", ratio=1)
+    for row in rows:
+        table.add_row(row["name"], row["paper"], *(str(row["cells"][k]) for k in ("quick", "cpu", "paper")),
+                      str(row["probes"]), *([escape(row["title"])] if wide else []))
+    console.print(table)
+    if not wide:
+        for row in rows:
+            console.print(f"[bold]{row['name']}[/]: {escape(row['title'])}", soft_wrap=True)
+
+
+def run_and_show_experiment(job: ExperimentJob, *, console, error_console) -> None:
+    """`bati experiment NAME` (or `list`): the experiment run (its progress and probes shown only on a
+    terminal), its report's tables, one line counting what ran, each failure on `error_console`;
+    SweepFailed if a cell or probe failed."""
+    from rich.markdown import Markdown
+    from rich.markup import escape
+
+    if job.name == "list":
+        return show_experiment_list(console=console)
+    outcome = run_experiment_job(job, show_progress=console.is_terminal,
+                                 on_probe=lambda label: console.print(f"probe {label}") if console.is_terminal
+                                 else None)
+    console.print(Markdown(outcome.report["markdown"]))
+    if outcome.run is None:
+        console.print(f"experiment {job.name}: report in {outcome.report_dir}/ (nothing trained)", soft_wrap=True)
+        return
+    sweep, run = outcome.run.sweep, outcome.run
+    counts = {s: sweep.count(s) for s in ("done", "skipped", "failed")}
+    console.print(f"experiment {job.name}: {counts['done']} cell(s) run, {counts['skipped']} already done, "
+                  f"{counts['failed']} failed, {run.probes_done} probe(s), in {run.wall_time_s / 60:.1f} min; "
+                  f"report in {outcome.report_dir}/", soft_wrap=True)
+    for label, error in outcome.failures.items():
+        error_console.print(f"[red]failed[/] {label}: {escape(error)}", soft_wrap=True)
+    if outcome.failures:
+        raise SweepFailed(f"{counts['failed']} cell(s) and {len(run.probe_errors)} probe(s) failed; rerun the "
+                          "same command to retry them")

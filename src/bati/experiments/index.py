@@ -14,7 +14,8 @@ studies and their records this module writes
   `main` experiment at the largest scale where it is that complete.
 
 `regenerate_reports` rewrites every experiment study's report from its cells (the same numbers, or the
-diff shows what moved); `pack_results` packs finished runs' metrics.jsonl (bati.io.pack_jsonl).
+diff shows what moved); `pack_results` packs finished runs' metrics.jsonl (bati.io.pack_jsonl);
+`update_results` is the command, all three in turn.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
+from bati.errors import PathError
 from bati.experiments.report import cell_records, experiment_report
 from bati.experiments.specs import MAIN_METHODS, SCALES, SPECS, Plan, get_spec, plan_experiment
 from bati.io import atomic_write_text, pack_jsonl, short_commit
@@ -382,4 +384,16 @@ def pack_results(root: Path = Path(".")) -> tuple[int, int]:
     return files, saved
 
 
-
+def update_results(root: Path = Path("."), reports: bool = False, pack: bool = False, *, console) -> None:
+    """`bati results`: first pack the runs' logs (`pack`) and write the studies' reports again (`reports`),
+    then the index pages; each step's result on the rich `console`."""
+    if not (root / "results").is_dir():
+        raise PathError(f"{root / 'results'} is not a directory: --root names the project directory")
+    if pack:
+        files, saved = pack_results(root)
+        console.print(f"packed {files} metrics.jsonl file(s), {saved / 2**20:.1f} MiB saved")
+    if reports:
+        for folder in regenerate_reports(root):
+            console.print(f"report: {folder}/report.md")
+    for path in write_results(root):
+        console.print(f"written: {path}")

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bati.config import ScaleName
-from bati.errors import BatiError
+from bati.errors import PartialFailure
 from bati.experiments.sweep import Grid, SweepError, expand, sweep
 from bati.io import atomic_write_json, atomic_write_text, check_directory
 from bati.report import build_report
@@ -32,7 +32,7 @@ HOLDS = 0.1
 """A method holds under p_test contexts when its normalised p_test score is at most this below its p_train one."""
 
 
-class MainJobFailed(BatiError):
+class MainJobFailed(PartialFailure):
     """Some of the main job's runs failed (the others finished); rerunning the command retries them."""
 
 
@@ -102,6 +102,17 @@ def run_main_job(job: MainJob, show_progress: bool = True) -> dict:
     return {"markdown": markdown, "reading": line, "out_dir": out, "report_dir": out / "report",
             "wall_time_s": wall_time, "rows": table["rows"]}
 
+
+def run_and_show_main_job(job: MainJob, *, console) -> None:
+    """`bati run`: the main job (progress only on a terminal), then its table with the reading line, its wall
+    time and where its files are, on the rich `console`."""
+    from rich.markdown import Markdown
+
+    results = run_main_job(job, show_progress=console.is_terminal)
+    console.print(Markdown(results["markdown"]))
+    console.print(f"wall time {results['wall_time_s'] / 60:.1f} min; results in {results['out_dir']}/ "
+                  f"(results.md, results.json; the report with CSVs and curves in {results['report_dir']}/)",
+                  soft_wrap=True)
 
 def reading(rows: list[dict], steps: int | None, n_seeds: int) -> str:
     """One line reading the report's table (`bati.report.build.method_rows`): who holds under p_test

@@ -12,6 +12,13 @@ The `novelty` probe measures unknown-task detection instead (`bati.inference.nov
 `self_collect_every` = k evaluates with self-collected contexts instead of given ones (`bati.online`:
 no context; z re-inferred from the policy's own last C transitions every k steps; keys `self_*`).
 A probe that is already on disk for the same run step and settings is read back, not redone.
+
+The likelihood split of a likelihood method's run (`bati likelihood`; the `main` and `noise` experiments,
+for every finished run whose checkpoint is at hand) asks which part of Eq. 8 picks the task: each training
+task's table entry scored on each test task's context (p_train and p_test) by the Eq. 7 NLL split in its
+reward and state terms, the task-inference error of the arg-min of the full NLL, the reward term alone
+(BATI-R) and the state terms alone, and how often the arg-min is the context collector's task. It is written
+to `<run>/likelihood.json`, which reports read (`bati.report.likelihood`).
 """
 
 from __future__ import annotations
@@ -25,8 +32,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from bati.checkpoints import CHECKPOINT_NAME
 from bati.errors import BatiError
-from bati.io import atomic_save_npz, atomic_write_json, code_record
+from bati.io import atomic_save_npz, atomic_write_json, code_record, read_run_config
+from bati.report.likelihood import (
+    LIKELIHOOD_FILE,
+    SOURCES,
+    TERMS,
+    likelihood_split_markdown,
+    read_likelihood_split,
+)
 
 
 class ProbeError(BatiError, ValueError):
@@ -184,3 +199,74 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
                     **{name: np.asarray(z) for name, z in results[0].latents.items()})
     atomic_write_json(path, out)
     return out
+
+
+def has_task_table(method: str) -> bool:
+    """Whether runs of `method` infer by Eq. 8 from a task table (bati, bati-r, bati-auto): what the split needs."""
+    from bati.methods import METHODS
+
+    cls = METHODS.get(method)
+    return cls is not None and hasattr(cls, "task_latents") and hasattr(cls, "score")
+
+
+def likelihood_split(run_dir: Path, context_length: int = 200, seed: int = 0) -> dict:
+    """The likelihood split (see the module) of the run's last checkpoint."""
+    from bati.data import sample_contexts
+    from bati.envs import get_family
+    from bati.inference import InferenceError, load_run
+    from bati.methods.dynamics import context_nll_terms
+
+    if read_run_config(Path(run_dir)).get("datasets"):  # before loading anything
+        raise InferenceError(f"{run_dir} trained on your own datasets: they have no test tasks with p_train and "
+                             "p_test contexts, which this diagnostic compares (`bati infer` scores your contexts)")
+    run = load_run(run_dir, calibrate=False)
+    config, data, params = run.config, run.data, run.params
+    model, table = run.method.model, run.method.task_latents(params)
+    family = get_family(config.family)
+    distances = family.distance_matrix(data.test_tasks, data.train_tasks)
+    # "the collector's task": a training task with the collector's parameters (HalfCheetahDir's 20 training tasks
+    # are two directions, so the collector's own index would miss the other tasks of its direction)
+    same_task = np.isclose(family.distance_matrix(data.train_tasks, data.train_tasks), 0.0)
+
+    def split_nll(context, z):
+        return context_nll_terms(model, params["dynamics"], context, z)
+
+    report = {"run_dir": str(run_dir), "family": config.family, "method": config.method, "step": run.step}
+    rows = np.arange(len(data.test_tasks))
+    for source in SOURCES:
+        task_data = getattr(data, source)
+        contexts = sample_contexts(task_data, jax.random.PRNGKey(seed), jnp.arange(len(rows)), context_length)
+        reward, states = (np.asarray(x) for x in jax.vmap(lambda c: jax.vmap(lambda z: split_nll(c, z))(table))(contexts))
+        collector = np.asarray(task_data.collector[:, 0])
+        for name, nll in zip(TERMS, (reward + states, reward, states)):
+            choice = nll.argmin(1)
+            report[f"{source}_{name}_error"] = float(distances[rows, choice].mean())
+            report[f"{source}_{name}_picks_collector"] = float(np.mean(same_task[choice, collector]))
+    return report
+
+
+def save_likelihood_split(run_dir: Path, context_length: int = 200, seed: int = 0) -> dict:
+    """`likelihood_split` of the run's last checkpoint, written to `<run>/likelihood.json` (atomically)."""
+    start = time.perf_counter()
+    report = likelihood_split(run_dir, context_length, seed)
+    report.update(context_length=context_length, seed=seed, **code_record(),
+                  wall_time_s=round(time.perf_counter() - start, 2))
+    atomic_write_json(Path(run_dir) / LIKELIHOOD_FILE, report)
+    return report
+
+
+def likelihood_split_due(run_dir: Path, step: int, context_length: int) -> bool:
+    """Whether the run's split should be (re)written: none saved for this step and context length, and the
+    checkpoint at hand (a run of a machine since lost keeps its committed results; its split cannot be redone)."""
+    saved = read_likelihood_split(run_dir)
+    if saved is not None and saved.get("step") == step and saved.get("context_length") == context_length:
+        return False
+    return (Path(run_dir) / CHECKPOINT_NAME).exists()
+
+
+def show_likelihood_split(run_dir: Path, context_length: int, *, console) -> None:
+    """`bati likelihood`: save the run's split and print it as a table, then where it went."""
+    from rich.markdown import Markdown
+
+    console.print(Markdown(likelihood_split_markdown(save_likelihood_split(run_dir, context_length))))
+    console.print(f"saved in {Path(run_dir) / LIKELIHOOD_FILE}", soft_wrap=True)

@@ -20,10 +20,15 @@ from pathlib import Path
 
 from bati.envs import TaskFamily, family_names, get_family
 from bati.errors import BatiError
-from bati.experiments.probes import Probe, run_probe
+from bati.experiments.probes import (
+    Probe,
+    has_task_table,
+    likelihood_split_due,
+    run_probe,
+    save_likelihood_split,
+)
 from bati.experiments.sweep import Cell, Grid, SweepResult, expand, record_lock, sweep
 from bati.methods import training_of
-from bati.report.likelihood import has_task_table, likelihood_split_due, save_likelihood_split
 from bati.run_dir import check_seeds
 
 SCALES = ("quick", "cpu", "paper")

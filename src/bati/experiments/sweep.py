@@ -28,9 +28,11 @@ from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from bati.errors import BatiError
+import tyro
+
+from bati.errors import BatiError, PartialFailure
 from bati.io import atomic_write_json, hold_lock
 from bati.config import (NOT_IDENTITY, ScaleName, TrainConfig, apply_settings, differing_settings, digest_view,
                          method_config_key, method_sections, section_readers, settable_names)
@@ -42,6 +44,10 @@ NOT_OVERRIDABLE = AXES + ("out_dir", "data_root")
 
 class SweepError(BatiError, ValueError):
     """A sweep that cannot start (bad grid, backend, directory): nothing was written."""
+
+
+class SweepFailed(PartialFailure):
+    """Some cells of a sweep (or probes of an experiment) failed; the others finished."""
 
 
 @dataclass
@@ -276,6 +282,22 @@ class SweepResult:
         return sum(s == status for s in self.status.values())
 
 
+@dataclass
+class SweepJob:
+    """`bati sweep`'s settings (the CLI is this dataclass): the grid and how and where to run it."""
+
+    grid: Annotated[Grid, tyro.conf.OmitArgPrefixes]
+    out_dir: Path = Path("runs/sweep")
+    """Sweep directory: sweep.json (cells and status) and one run directory per cell."""
+    data_root: Path = Path("data")
+    workers: int = 1
+    """Jobs at a time (local: processes; several may share one GPU). A job trains one setting's seeds together."""
+    backend: Literal["local", "ray"] = "local"
+    address: str | None = None
+    """Ray cluster address (backend ray; default: a local Ray)."""
+    report: bool = True
+    """Finish with `bati report OUT_DIR`."""
+
 def record_lock(out_dir: Path, status_file: str = "sweep.json"):
     """The lock a sweep holds on its status record (a context manager; LockedError if another process
     holds it). Callers that do more under the same record, such as an experiment's probes, take it
@@ -369,6 +391,27 @@ def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("dat
             _run_locally(jobs, workers, arguments, running, finished)
     return SweepResult(out_dir, {c.id: status[c.id] for c in cells}, errors, time.perf_counter() - start)
 
+
+def sweep_and_show(job: SweepJob, *, console, error_console) -> None:
+    """`bati sweep`: the sweep (its live table only on a terminal), one line counting its cells, each failed
+    cell's error on `error_console`, then `bati report` over it unless `job.report` is False or nothing
+    finished; SweepFailed if a cell failed."""
+    from rich.markup import escape
+
+    from bati.report.build import build_and_show_report
+
+    result = sweep(job.grid, job.out_dir, data_root=job.data_root, workers=job.workers, backend=job.backend,
+                   address=job.address, show_progress=console.is_terminal)
+    counts = {s: result.count(s) for s in ("done", "skipped", "failed")}
+    console.print(f"sweep {result.out_dir}: {counts['done']} cell(s) run, {counts['skipped']} already done, "
+                  f"{counts['failed']} failed, in {result.wall_time_s / 60:.1f} min", soft_wrap=True)
+    for cell_id, error in result.errors.items():
+        error_console.print(f"[red]failed[/] {cell_id}: {escape(error)}", soft_wrap=True)
+    if job.report and counts["done"] + counts["skipped"]:
+        build_and_show_report(job.out_dir, console=console)
+    if counts["failed"]:
+        raise SweepFailed(f"{counts['failed']} cell(s) failed; their errors are in {result.out_dir}/sweep.json; "
+                          "rerun the same command to retry them")
 
 def _describe(err: BaseException) -> str:
     return f"{type(err).__name__}: {err}"

@@ -208,6 +208,17 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
     return out
 
 
+def train_and_export(config: ExpertTrainConfig, *, console) -> None:
+    """`bati experts train`: every setting checked before any work (one line), the expert trained, and where
+    it was exported printed on the rich `console`."""
+    config = config.resolved()
+    out = train_expert(config)
+    where = "the package zoo (every later collection of it uses this expert)" if config.into_package else \
+        f"{config.export_dir} (collect with --zoo-dir {config.export_dir})"
+    if config.per_task:
+        where += " as per-task experts (collect with --experts per-task)"
+    console.print(f"expert run in {out}; exported to {where}", soft_wrap=True)
+
 def evaluate_expert(sac: SAC, actor, family, n_tasks: int, seed: int) -> dict[str, float]:
     """Deterministic return (eps = 0) on n fixed tasks; velocity error where it applies."""
     tasks = family.sample_tasks(n_tasks, seed)

@@ -591,6 +591,16 @@ def build_report(results_dir: Path, out_dir: Path | None = None, reps: int = BOO
     return {"out_dir": out, "markdown": report_md, "tables": tables, "runs": len(runs), "files": files}
 
 
+def build_and_show_report(results_dir: Path, out_dir: Path | None = None, *, console) -> None:
+    """`bati report`: build the report, then print its tables and the files it wrote on the rich `console`
+    (files skipped are warnings, shown as they happen)."""
+    from rich.markdown import Markdown
+
+    report = build_report(results_dir, out_dir)
+    console.print(Markdown(report["markdown"]))
+    console.print(f"{report['runs']} run(s), {len(report['tables'])} table(s); "
+                  f"files in {report['out_dir']}/: " + ", ".join(p.name for p in report["files"]), soft_wrap=True)
+
 def _write_held_out_table(group: Group, title: str, out: Path) -> dict:
     """A group of runs on your own datasets: held-out metrics table, its CSV and curves (bati.report.held_out)."""
     rows = held_out_rows(group.runs_of, group.methods)
