@@ -17,10 +17,10 @@ from typing import Annotated, Any, Literal, get_args, get_type_hints
 import tyro
 
 from bati.checks import check_finite_fields, check_hidden_dims, check_integer, check_number
-from bati.data.own import OWN_FAMILY
+from bati.data.own import OWN_FAMILY, family_of  # noqa: F401 (family_of: imported from here by others)
 from bati.envs import TaskSplit
 from bati.io import read_run_config
-from bati.methods import METHODS
+from bati.methods import METHODS, method_config_key, method_sections, section_methods, section_readers
 from bati.records import (  # noqa: F401 (differing_settings, digest_view: imported from here by others)
     RECORD_ONLY,
     RECORD_VERSION,
@@ -67,18 +67,7 @@ def get_scale(name: str) -> Scale:
     return SCALES[name]
 
 
-def _section_methods() -> dict[str, type]:
-    """Each hyperparameter section of the methods in METHODS, in its order: `config_key` -> the first method
-    declaring it (bati, bati-r and bati-auto share `bati`, and so its Config)."""
-    first = {}
-    for name, cls in METHODS.items():
-        if cls.config_key is not None and first.setdefault(cls.config_key, cls).Config is not cls.Config:
-            raise TypeError(f"{name} reads the section {cls.config_key!r} with a Config of its own "
-                            f"({cls.Config.__name__}, not {first[cls.config_key].Config.__name__})")
-    return first
-
-
-_SECTION_METHODS = _section_methods()
+_SECTION_METHODS = section_methods()
 
 
 def with_method_sections(cls: type) -> type:
@@ -419,28 +408,6 @@ def _field_types(cls: type) -> dict[str, Any]:
     return get_type_hints(cls)
 
 
-def family_of(name: str, context_length: int | None = None):
-    """The family called `name`; for `own` (a user's datasets) a family-like holder of its record, whose
-    episodes are segments of `context_length` transitions (default 200)."""
-    from bati.envs import get_family
-
-    if name != OWN_FAMILY:
-        return get_family(name)
-    from bati.data.own import OwnFamily
-
-    return OwnFamily(context_length or 200)
-
-
-def method_sections() -> dict[str, type]:
-    """TrainConfig's per-method fields: name -> the Config dataclass it holds."""
-    return {key: method.Config for key, method in _SECTION_METHODS.items()}
-
-
-def section_readers(section: str) -> list[str]:
-    """The methods that read the hyperparameter section `section` (e.g. bati, bati-r and bati-auto read `bati`)."""
-    return [name for name, cls in METHODS.items() if cls.config_key == section]
-
-
 def check_foreign_sections(config: TrainConfig, record) -> None:
     """ValueError (one line) when `config` sets another method's hyperparameters, which its method never
     reads (e.g. --focal.distance on a csro run: CSRO reads --csro.distance)."""
@@ -454,12 +421,6 @@ def check_foreign_sections(config: TrainConfig, record) -> None:
             reads = f"which reads {own}.*" if own else "which has no hyperparameters of its own"
             raise ValueError(f"{name}.{changed[0]} is read by {', '.join(section_readers(name))} only, not by "
                              f"{config.method} ({reads})")
-
-
-def method_config_key(method: str) -> str | None:
-    """The TrainConfig field holding `method`'s hyperparameters (None: it has none, or is unknown)."""
-    cls = METHODS.get(method)
-    return None if cls is None else cls.config_key
 
 
 def _for_family(section, record):

@@ -15,6 +15,9 @@ import json
 from dataclasses import asdict, fields
 from typing import Any
 
+from bati.data.own import family_of
+from bati.methods import method_config_key, method_sections
+
 RECORD_VERSION = 2
 """The version of the records this bati writes."""
 VERSION_KEY = "record_version"
@@ -66,7 +69,7 @@ def digest_view(record: dict) -> dict:
     out and renamed ones take their old names, so a config that an older version could express keeps its digest
     (and its run directory)."""
     view = _without_later_fields(record)
-    for name in _method_sections():
+    for name in method_sections():
         if isinstance(view.get(name), dict):
             view[name] = _without_later_method_fields(view[name])
             default = default_method_record(record.get("family"), record.get("method"))
@@ -81,13 +84,11 @@ def digest_view(record: dict) -> dict:
 
 def default_method_record(family: str | None, method: str | None) -> dict | None:
     """The default hyperparameters of `method` on `family`, as config.json records them."""
-    from bati.config import family_of, method_config_key
-
     key = method_config_key(method or "")
     if key is None:
         return None
     family_record = family_of(family).record if family else None  # an unknown family: its error, for every method
-    section = _method_sections()[key]()
+    section = method_sections()[key]()
     if hasattr(section, "for_family"):  # the family's Table 3 weights (no family: the record's defaults)
         section = section.for_family(family_record)
     return json.loads(json.dumps(asdict(section), default=str))
@@ -104,7 +105,7 @@ def _from_version_1(record: dict) -> dict:
         if record.get("method") == method and name not in (record.get(key) or {}):
             section = record.get(key) or default_method_record(record.get("family"), method)
             record[key] = {**section, name: old_value}
-    for name, cls in _method_sections().items():
+    for name, cls in method_sections().items():
         section = record.get(name)
         if isinstance(section, dict):
             names = {f.name for f in fields(cls)}
@@ -117,7 +118,7 @@ def _value_before(key: str, current: dict) -> Any:
     hyperparameters the defaults for the current record's family."""
     if key in LATER_FIELDS:
         return LATER_FIELDS[key]
-    if key in _method_sections():
+    if key in method_sections():
         return default_method_record(current.get("family"), current.get("method"))
     return None
 
@@ -125,7 +126,7 @@ def _value_before(key: str, current: dict) -> Any:
 def _compact(record: dict) -> dict:
     """Today's `record` with only the settings that tell runs apart (`read_record`'s compact)."""
     record = _without_later_fields(record)
-    for name in _method_sections():
+    for name in method_sections():
         if name in record:
             try:
                 default = default_method_record(record.get("family"), record.get("method"))
@@ -146,9 +147,3 @@ def _without_later_fields(record: dict) -> dict:
 
 def _without_later_method_fields(section: dict) -> dict:
     return {k: v for k, v in section.items() if not (k in LATER_METHOD_FIELDS and v == LATER_METHOD_FIELDS[k])}
-
-
-def _method_sections() -> dict[str, type]:
-    from bati.config import method_sections
-
-    return method_sections()

@@ -19,9 +19,9 @@ import jax
 import numpy as np
 
 from bati.checkpoints import CHECKPOINT_NAME, load_checkpoint
-from bati.config import NOT_IDENTITY, TrainConfig, differing_settings, family_of
+from bati.config import NOT_IDENTITY, TrainConfig, differing_settings
 from bati.data import FamilyData, ensure_family_data, load_family_data
-from bati.data.own import load_own_data
+from bati.data.own import family_of, load_own_data
 from bati.device import describe_device
 from bati.errors import BatiError
 from bati.experts import load as load_expert

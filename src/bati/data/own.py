@@ -32,8 +32,8 @@ import numpy as np
 
 from bati.data.batch import FamilyData, TaskData
 from bati.data.store import DatasetError, DatasetNotFoundError
+from bati.envs import FamilyRecord, TaskFamily, get_family
 from bati.errors import BatiError
-from bati.envs import FamilyRecord, TaskFamily
 
 OWN_FAMILY = "own"
 """TrainConfig.family of a run on a user's own datasets (no env: offline diagnostics only)."""
@@ -87,6 +87,14 @@ class TaskOptions(gym.Wrapper):
 
     def reset(self, *, seed=None, options=None):
         return self.env.reset(seed=seed, options={**(options or {}), self.task_key: self._value})
+
+
+def family_of(name: str, context_length: int | None = None) -> TaskFamily:
+    """The family called `name`; for `own` (a user's datasets) a family-like holder of its record, whose
+    episodes are segments of `context_length` transitions (default 200)."""
+    if name != OWN_FAMILY:
+        return get_family(name)
+    return OwnFamily(context_length or 200)
 
 
 def check_eval_env(eval_env: str, task_key: str | None) -> int:

@@ -42,3 +42,30 @@ def make_method(name: str, spec: MethodSpec, config=None) -> TaskInference:
 
 
 __all__ = ["METHODS", "MethodSpec", "TaskInference", "make_method", "method_names", "training_of"]
+
+
+def section_methods() -> dict[str, type]:
+    """Each hyperparameter section of the methods in METHODS, in its order: `config_key` -> the first method
+    declaring it (bati, bati-r and bati-auto share `bati`, and so its Config). TrainConfig has one field each."""
+    first = {}
+    for name, cls in METHODS.items():
+        if cls.config_key is not None and first.setdefault(cls.config_key, cls).Config is not cls.Config:
+            raise TypeError(f"{name} reads the section {cls.config_key!r} with a Config of its own "
+                            f"({cls.Config.__name__}, not {first[cls.config_key].Config.__name__})")
+    return first
+
+
+def method_sections() -> dict[str, type]:
+    """The hyperparameter sections: name -> the Config dataclass it holds."""
+    return {key: method.Config for key, method in section_methods().items()}
+
+
+def section_readers(section: str) -> list[str]:
+    """The methods that read the hyperparameter section `section` (e.g. bati, bati-r and bati-auto read `bati`)."""
+    return [name for name, cls in METHODS.items() if cls.config_key == section]
+
+
+def method_config_key(method: str) -> str | None:
+    """The section holding `method`'s hyperparameters (None: it has none, or is unknown)."""
+    cls = METHODS.get(method)
+    return None if cls is None else cls.config_key
