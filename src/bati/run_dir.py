@@ -23,6 +23,7 @@ from bati.config import NOT_IDENTITY, TrainConfig, differing_settings
 from bati.data import FamilyData, ensure_family_data, load_family_data
 from bati.data.own import family_of, load_own_data
 from bati.device import describe_device
+from bati.envs import TaskFamily
 from bati.errors import BatiError
 from bati.experts import load as load_expert
 from bati.io import (
@@ -99,11 +100,11 @@ def follows(companion: TrainConfig, run_dir: Path, step: int) -> bool:
 
 
 @contextlib.contextmanager
-def claim_run_dirs(configs: list[TrainConfig]):
-    """Hold the run directories of `configs` (locks) while training: each is checked before anything is written
-    (a file in its place, an unwritable data root, a directory of another config: one line), and one this
-    call creates is forgotten again if it fails before its first record."""
-    _check_paths(configs)
+def claim_run_dirs(configs: list[TrainConfig], family: TaskFamily):
+    """Hold the run directories of `configs` (locks; `family`: theirs, resolved) while training: each is checked
+    before anything is written (a file in its place, an unwritable data root, a directory of another config: one
+    line), and one this call creates is forgotten again if it fails before its first record."""
+    _check_paths(configs, family)
     with contextlib.ExitStack() as claimed:
         for c in configs:
             claimed.enter_context(hold_lock(c.out_dir / LOCK_NAME, f"the run directory {c.out_dir}"))
@@ -112,7 +113,7 @@ def claim_run_dirs(configs: list[TrainConfig]):
         yield
 
 
-def _check_paths(configs: list[TrainConfig]) -> None:
+def _check_paths(configs: list[TrainConfig], family: TaskFamily) -> None:
     """Refuse run directories and a data root that are files (or unwritable where we must write) with
     one line, before anything is written anywhere."""
     from bati.data import store
@@ -122,7 +123,7 @@ def _check_paths(configs: list[TrainConfig]) -> None:
     c = configs[0]
     if c.datasets:  # a user's own datasets: read, never written
         return
-    collection = store.collection_dir(c.data_root, family_of(c.family), c.data_scale, c.data_seed, c.noise,
+    collection = store.collection_dir(c.data_root, family, c.data_scale, c.data_seed, c.noise,
                                       c.task_split(), c.experts)
     check_directory(c.data_root, "the data root", writable=not (collection / store.MANIFEST).is_file())
 
@@ -192,9 +193,11 @@ class RunInputs:
     expert: object | None
 
     @classmethod
-    def resolve(cls, config: TrainConfig, show_progress: bool = True, collect: bool = True) -> RunInputs:
-        """The inputs of a resolved config: its data collected if missing (`collect`) or read as it is."""
-        family = family_of(config.family, config.context_length)
+    def resolve(cls, config: TrainConfig, show_progress: bool = True, collect: bool = True,
+                family: TaskFamily | None = None) -> RunInputs:
+        """The inputs of a resolved config: its data collected if missing (`collect`) or read as it is.
+        `family`: the config's, when the caller has resolved it."""
+        family = family or family_of(config.family, config.context_length)
         if config.datasets:
             data = load_own_data(config.datasets, config.task_key, config.context_length, config.held_out,
                                  seed=config.data_seed)

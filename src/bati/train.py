@@ -27,6 +27,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from bati.checkpoints import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
 from bati.config import TrainConfig
 from bati.data import FamilyData
+from bati.data.own import family_of
 from bati.device import describe_device
 from bati.evaluate import Evaluator, OfflineEvaluator, reference_returns
 from bati.evaluations import EvaluatedBeside, RunEvaluations
@@ -78,8 +79,9 @@ def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool
     configs = [replace(config, seed=s, out_dir=(runs_dir / f"{config.method}-seed{s}") if runs_dir else
                        config.out_dir).resolved() for s in seeds]
     companions = companion_configs(configs, also)
-    with claim_run_dirs(configs + [c for group in companions for c in group]):
-        return _train_claimed(configs, companions, show_progress, references)
+    family = family_of(configs[0].family, configs[0].context_length)  # the one lookup by name
+    with claim_run_dirs(configs + [c for group in companions for c in group], family):
+        return _train_claimed(configs, companions, family, show_progress, references)
 
 
 @dataclass
@@ -117,11 +119,11 @@ class SeedRun:
         return cls(config, state, base_key, sinks, following)
 
 
-def _train_claimed(configs: list[TrainConfig], companions: list[list[TrainConfig]], show_progress: bool,
+def _train_claimed(configs: list[TrainConfig], companions: list[list[TrainConfig]], family, show_progress: bool,
                    references: dict | None) -> list[dict]:
     """train_seeds once its run directories are checked, claimed and locked."""
     config = configs[0]
-    inputs = RunInputs.resolve(config, show_progress)
+    inputs = RunInputs.resolve(config, show_progress, family=family)
     data, trainer = inputs.data, inputs.trainer()
     if config.datasets:
         evaluator = OfflineEvaluator(trainer, data, config.eval_context_length, *own_env(config, data))
