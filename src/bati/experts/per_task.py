@@ -27,7 +27,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from bati.envs import TaskFamily, get_family
 from bati.envs.rollout import LockstepEnvs, rollout
 from bati.experts.base import Expert
-from bati.experts.sac import SAC, SACConfig
+from bati.experts.sac import RESUME_IDENTITY, SAC, SACConfig, generator_from_state
 from bati.io import append_jsonl, atomic_save_npz, atomic_write_bytes, atomic_write_json, check_directory, \
     check_run_config
 
@@ -103,8 +103,6 @@ def task_keys(seed: int, indices) -> jax.Array:
 def train_per_task_experts(config, show_progress: bool = True) -> Path:
     """Train (or resume) the per-task experts of `config.family` (an ExpertTrainConfig with per_task);
     returns the run directory."""
-    from bati.experts.train import RESUME_IDENTITY
-
     config = config.resolved()
     family = get_family(config.family)
     out: Path = config.out_dir
@@ -205,7 +203,6 @@ def _load_checkpoint(out: Path, buffers: TaskBuffers, template):
         buffers.restore(arrays)
         state = flax.serialization.from_bytes(template, arrays["state"].tobytes())
         meta = json.loads(str(arrays["meta"]))
-    from bati.experts.train import generator_from_state
 
     rngs = [generator_from_state(saved) for saved in meta["rngs"]]
     keys = jnp.asarray(np.asarray(meta["keys"], dtype=np.uint32))

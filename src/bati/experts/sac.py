@@ -13,6 +13,7 @@ from typing import NamedTuple
 import flax
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
@@ -170,3 +171,15 @@ def state_from_bytes(template: SACState, data: bytes) -> SACState:
     """A saved SACState (an older layout is upgraded first)."""
     raw = flax.serialization.msgpack_restore(data)
     return flax.serialization.from_state_dict(template, upgrade_checkpoint(raw))
+
+
+RESUME_IDENTITY = ("family", "seed", "num_envs", "updates_per_step", "start_steps", "sac")
+"""What a resumed expert training run (conditioned or per task) must share with the run in its directory
+(total_steps may grow)."""
+
+
+def generator_from_state(state: dict) -> np.random.Generator:
+    """A numpy Generator continuing from a saved `bit_generator.state` (a SAC trainer's checkpoint holds it)."""
+    rng = np.random.default_rng()
+    rng.bit_generator.state = state
+    return rng

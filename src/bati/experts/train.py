@@ -20,10 +20,16 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from bati.checks import check_integer, check_number
 from bati.envs import get_family
 from bati.envs.rollout import LockstepEnvs, rollout
-from bati.experts.sac import SAC, SACConfig, state_from_bytes, state_to_bytes
+from bati.experts.sac import (
+    RESUME_IDENTITY,
+    SAC,
+    SACConfig,
+    generator_from_state,
+    state_from_bytes,
+    state_to_bytes,
+)
 from bati.experts.zoo import save_expert
 from bati.io import append_jsonl, atomic_save_npz, check_directory, check_run_config
-
 
 MAX_UPDATES_PER_STEP = 1_000.0
 """More SAC updates per transition than this is a typo, not a plan (the default is 0.5)."""
@@ -235,10 +241,6 @@ def _default_zoo() -> Path:
     return ZOO_DIR
 
 
-RESUME_IDENTITY = ("family", "seed", "num_envs", "updates_per_step", "start_steps", "sac")
-"""What a resumed expert run must share with the run in its directory (total_steps may grow)."""
-
-
 def _check_config(out: Path, config: ExpertTrainConfig) -> None:
     """Refuse to resume a run directory written with another family, seed, env count or SAC setting."""
     current = json.loads(json.dumps(asdict(config), default=str))
@@ -251,13 +253,6 @@ def _save_checkpoint(out: Path, state, key, rng, episode, buffer, wall_time: flo
             "wall_time": wall_time}
     atomic_save_npz(out / "checkpoint.npz", **buffer.state(),
                     state=np.frombuffer(state_to_bytes(state), np.uint8), meta=np.array(json.dumps(meta)))
-
-
-def generator_from_state(state: dict) -> np.random.Generator:
-    """A numpy Generator continuing from a saved `bit_generator.state`."""
-    rng = np.random.default_rng()
-    rng.bit_generator.state = state
-    return rng
 
 
 def _load_checkpoint(out: Path, buffer: ReplayBuffer, template):
