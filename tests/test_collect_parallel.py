@@ -13,6 +13,7 @@ from bati.data import collect as collect_mod
 from bati.data import store
 from bati.data.batch import ensure_family_data
 from bati.data.collect import collect
+from bati.envs import get_family
 
 FAMILY = "PointGoal"
 TINY = {"n_episodes": 2, "n_context_episodes": 1}  # 40 + 20 + 20 = 80 episodes
@@ -98,7 +99,7 @@ def test_worker_error_propagates_and_leaves_nothing(tmp_path, monkeypatch):
     expert_dir = collect_mod.Path(collect_mod.__file__).parents[1] / "experts" / "zoo" / FAMILY
     for name in ("expert.json", "actor.msgpack"):
         (zoo / FAMILY / name).write_bytes((expert_dir / name).read_bytes())
-    expert = real(FAMILY, zoo)  # the main process has its expert; the workers will find none
+    expert = real(get_family(FAMILY), zoo)  # the main process has its expert; the workers will find none
 
     def main_only(family, zoo_dir=None, experts="conditioned"):
         (zoo / FAMILY / "expert.json").unlink(missing_ok=True)

@@ -253,7 +253,7 @@ def test_expert_is_the_best_response_and_explores_epsilon_greedily():
     from bati.data.collect import load_expert
     from bati.experts.kuhn import EXPLORATION, BestResponseExpert
 
-    expert = load_expert("KuhnPoker")
+    expert = load_expert(get_family("KuhnPoker"))
     assert isinstance(expert, BestResponseExpert)
     assert (expert.meta["obs_dim"], expert.meta["action_dim"], expert.meta["task_dim"]) == (12, 2, 6)
     obs = kuhn.decision_observations()

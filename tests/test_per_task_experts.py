@@ -86,7 +86,7 @@ def _labelled_experts(family_name: str, n: int) -> PerTaskExperts:
     env.close()
     meta = {"kind": "per-task", "obs_dim": obs_dim, "action_dim": action_dim, "hidden_dims": [4],
             "tasks": [family.task_to_array(t).tolist() for t in training_tasks(family)][:n]}
-    experts = PerTaskExperts(family_name, None, meta)
+    experts = PerTaskExperts(family, None, meta)
     template = experts._sac.init(jax.random.PRNGKey(0)).actor.params
     targets = np.arctanh(_labels(n))
 

@@ -408,7 +408,7 @@ def test_a_run_takes_its_expert_from_zoo_dir(tmp_path, point_data, monkeypatch):
                         lambda data, **k: used.append(k.get("expert")) or real_references(data, **k))
     summary = train(_config(tmp_path, "own-zoo", zoo_dir=zoo), show_progress=False)
     assert asked == [zoo] and used == loaded  # loaded once, from the zoo, and the reference return is its
-    package_expert = real_load("PointGoal")  # the same actor, from the package zoo
+    package_expert = real_load(get_family("PointGoal"))  # the same actor, from the package zoo
     assert summary["reference_returns"]["expert"] == real_references(
         point_data, family=get_family("PointGoal"), expert=package_expert)["expert"]
 

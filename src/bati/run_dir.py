@@ -25,7 +25,7 @@ from bati.data.own import family_of, load_own_data
 from bati.device import describe_device
 from bati.envs import TaskFamily
 from bati.errors import BatiError
-from bati.experts import load as load_expert
+from bati.experts.zoo import load_for as load_expert
 from bati.io import (
     LOCK_NAME,
     atomic_write_json,
@@ -210,7 +210,7 @@ class RunInputs:
         # training needs the expert (collection, reference returns): none is one line now, not after training;
         # a finished run is opened without it unless its method imitates it (DPT)
         needs_expert = collect or METHODS[config.method].needs_expert_actions
-        expert = load_expert(config.family, config.zoo_dir, config.experts) if needs_expert else None
+        expert = load_expert(family, config.zoo_dir, config.experts) if needs_expert else None
         if collect:
             data = ensure_family_data(family, config.data_scale, config.data_seed, config.noise,
                                       config.data_root, n_episodes=config.episodes_per_task,

@@ -126,7 +126,7 @@ def collect(
     if fam.name not in FAMILY_NAMES and not _from_plugin(fam.name):  # spawned workers would not know it
         workers = 1
     load_start = time.perf_counter()
-    expert = load_expert(family, zoo_dir, experts)  # FileNotFoundError naming `bati experts train --family X`
+    expert = load_expert(fam, zoo_dir, experts)  # FileNotFoundError naming `bati experts train --family X`
     if experts == "per-task":
         expert.check_tasks(plan.train_tasks)  # trained for other tasks: one line, before any episode
     timings = {"expert_load_s": time.perf_counter() - load_start}
@@ -241,25 +241,24 @@ def collection_settings(family: TaskFamily, scale: str, seed: int, noise: float,
 _EXPERTS: dict[tuple, Any] = {}
 
 
-def load_expert(family: str, zoo_dir: str | Path | None = None, experts: str = "conditioned"):
-    """`bati.experts.load`, memoised per process while the expert's files are unchanged."""
-    from bati.experts import load
+def load_expert(family: TaskFamily, zoo_dir: str | Path | None = None, experts: str = "conditioned"):
+    """`bati.experts.zoo.load_for`, memoised per process while the expert's files are unchanged."""
     from bati.experts.per_task import PER_TASK_DIR
-    from bati.experts.zoo import ZOO_DIR
+    from bati.experts.zoo import ZOO_DIR, load_for
 
-    directory = Path(zoo_dir or ZOO_DIR) / family
+    directory = Path(zoo_dir or ZOO_DIR) / family.name
     files = ("expert.json", "actor.msgpack")
     if experts == "per-task":
         directory, files = directory / PER_TASK_DIR, ("expert.json", "actors.msgpack")
     try:
         stamp = tuple((directory / name).stat().st_mtime_ns for name in files)
     except OSError:
-        return load(family, zoo_dir, experts)  # raises the zoo's own error (e.g. no expert for the family)
-    key = (family, str(directory.resolve()), stamp)
+        return load_for(family, zoo_dir, experts)  # raises the zoo's own error (e.g. no expert for the family)
+    key = (family.name, str(directory.resolve()), stamp)
     if key not in _EXPERTS:
         for stale in [k for k in _EXPERTS if k[:2] == key[:2]]:  # the expert was re-exported
             del _EXPERTS[stale]
-        _EXPERTS[key] = load(family, zoo_dir, experts)
+        _EXPERTS[key] = load_for(family, zoo_dir, experts)
     return _EXPERTS[key]
 
 
@@ -386,7 +385,7 @@ def _worker_rollout(chunk: _Chunk) -> tuple[int, np.ndarray, np.ndarray, np.ndar
     w = _WORKER
     if "expert" not in w:  # loaded here, not in the initializer: its errors reach the caller intact
         w["family"] = get_family(w["family_name"])
-        w["expert"] = load_expert(w["family_name"], w["zoo_dir"], w["experts"])
+        w["expert"] = load_expert(w["family"], w["zoo_dir"], w["experts"])
         w["envs"] = LockstepEnvs(w["family"], w["noise"])
     return (chunk.index, *_rollout_chunk(w["family"], w["expert"], w["noise"], w["seed"], chunk,
                                          w["chunk_size"], w["envs"]))

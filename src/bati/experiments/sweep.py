@@ -251,10 +251,11 @@ def check_experts(cells: list[Cell]) -> None:
     """Every run needs its family's expert (reference returns, the collection, DPT's labels): a missing one
     is the zoo's one-line error before anything is written."""
     from bati.data.collect import load_expert
+    from bati.envs import get_family
 
     for family, zoo_dir, experts in sorted({(c.config.family, c.config.zoo_dir, c.config.experts)
                                             for c in cells if not c.config.datasets}, key=str):
-        load_expert(family, zoo_dir, experts)
+        load_expert(get_family(family), zoo_dir, experts)
 
 
 def prepare_data(cells: list[Cell], progress: bool) -> None:

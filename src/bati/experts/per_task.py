@@ -219,8 +219,8 @@ class PerTaskExperts(Expert):
     the first on ties (HalfCheetahDir's repeated directions), as App. C.2 picks a test task's collector.
     """
 
-    def __init__(self, family_name: str, actors, meta: dict):
-        self.family = get_family(family_name)
+    def __init__(self, family: TaskFamily, actors, meta: dict):
+        self.family = family
         self.meta = meta
         self.actors = actors  # stacked: a leading axis of n_tasks
         self.train_task_arrays = np.asarray(meta["tasks"], np.float32)  # (n_tasks, task_dim)
@@ -267,15 +267,15 @@ class PerTaskExperts(Expert):
                              "training tasks differ (another --seed or task split): use --experts conditioned")
 
 
-def load_per_task(family_name: str, directory: Path) -> PerTaskExperts:
-    """The per-task experts in `directory` (`<zoo>/<Family>/per-task`)."""
+def load_per_task(family: TaskFamily, directory: Path) -> PerTaskExperts:
+    """The per-task experts of `family` in `directory` (`<zoo>/<Family>/per-task`)."""
+    family_name = family.name
     meta_path = directory / "expert.json"
     if not meta_path.is_file():
         raise FileNotFoundError(
             f"no per-task experts for {family_name} in {directory}; train them with `bati experts train --family "
             f"{family_name} --per-task` (exported to runs/experts/{family_name}-per-task/zoo: pass that as --zoo-dir)")
     meta = json.loads(meta_path.read_text())
-    family = get_family(family_name)
     if meta.get("family") != family_name or meta.get("kind") != "per-task":
         raise ValueError(f"{meta_path} holds {meta.get('kind', 'conditioned')} experts of {meta.get('family')!r}, "
                          f"not per-task experts of {family_name!r}")
@@ -287,4 +287,4 @@ def load_per_task(family_name: str, directory: Path) -> PerTaskExperts:
     n = len(meta["tasks"])
     template = jax.eval_shape(lambda: jax.lax.map(sac.init, jnp.zeros((n, 2), jnp.uint32))).actor.params
     actors = flax.serialization.from_bytes(template, (directory / "actors.msgpack").read_bytes())
-    return PerTaskExperts(family_name, actors, meta)
+    return PerTaskExperts(family, actors, meta)

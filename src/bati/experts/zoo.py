@@ -11,7 +11,7 @@ import flax
 import jax
 import numpy as np
 
-from bati.envs import get_family
+from bati.envs import TaskFamily, get_family
 from bati.experts.base import Expert
 from bati.io import atomic_write_bytes, atomic_write_json
 
@@ -30,10 +30,10 @@ def check_kind(kind: str) -> str:
 class ExpertPolicy(Expert):
     """A trained task-conditioned SAC actor (the MuJoCo families and PointGoal)."""
 
-    def __init__(self, family_name: str, actor_params: Any, meta: dict):
+    def __init__(self, family: TaskFamily, actor_params: Any, meta: dict):
         from bati.experts.sac import SAC, SACConfig
 
-        self.family = get_family(family_name)
+        self.family = family
         self.meta = meta
         self._sac = SAC(meta["obs_dim"], meta["task_dim"], meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
         self.actor_params = actor_params
@@ -70,21 +70,27 @@ def register_expert(family_name: str, factory: Callable[[], Expert]) -> None:
 
 
 def load(family_name: str, zoo_dir: str | Path | None = None, kind: str = "conditioned") -> Expert:
-    """The shipped (or `zoo_dir`'s) expert of a family, or the one `register_expert` gave it
+    """The shipped (or `zoo_dir`'s) expert of the family called `family_name` (`load_for`); an unknown name is a
+    TaskError."""
+    return load_for(get_family(family_name), zoo_dir, kind)
+
+
+def load_for(family: TaskFamily, zoo_dir: str | Path | None = None, kind: str = "conditioned") -> Expert:
+    """The shipped (or `zoo_dir`'s) expert of `family`, or the one `register_expert` gave it
     (KuhnPoker: exact best responses, nothing shipped). `kind`: "conditioned" (one task-conditioned SAC)
     or "per-task" (one SAC per training task, App. C.2: `bati.experts.per_task`)."""
     from bati.experts.sac import SAC, SACConfig
 
     check_kind(kind)
+    family_name = family.name
     directory = Path(zoo_dir or ZOO_DIR) / family_name
     meta_path = directory / "expert.json"
-    get_family(family_name)  # unknown family -> TaskError
     if kind == "per-task":
         from bati.experts.per_task import PER_TASK_DIR, load_per_task
 
         if family_name in _EXPERT_FACTORIES:
             raise ValueError(f"{family_name}'s expert is computed or scripted, not trained per task: use --experts conditioned")
-        return load_per_task(family_name, directory / PER_TASK_DIR)
+        return load_per_task(family, directory / PER_TASK_DIR)
     if family_name in _EXPERT_FACTORIES:  # computed or scripted: nothing to load
         return _EXPERT_FACTORIES[family_name]()
     if not meta_path.exists():
@@ -95,11 +101,11 @@ def load(family_name: str, zoo_dir: str | Path | None = None, kind: str = "condi
     meta = json.loads(meta_path.read_text())
     if meta.get("family") != family_name:
         raise ValueError(f"{meta_path} holds an expert of {meta.get('family')!r}, not {family_name!r}")
-    version, current = meta.get("family_version", 1), get_family(family_name).record.version
+    version, current = meta.get("family_version", 1), family.record.version
     if version != current:
         raise ValueError(f"{meta_path} is an expert for {family_name}'s env version {version}, not the current "
                          f"version {current}; retrain it with `bati experts train --family {family_name}`")
     sac = SAC(meta["obs_dim"], meta["task_dim"], meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
     template = jax.eval_shape(sac.init, jax.random.PRNGKey(0)).actor.params  # shapes only: no compute
     params = flax.serialization.from_bytes(template, (directory / "actor.msgpack").read_bytes())
-    return ExpertPolicy(family_name, params, meta)
+    return ExpertPolicy(family, params, meta)
