@@ -137,6 +137,8 @@ def test_a_record_names_its_version_which_is_not_part_of_the_runs_identity():
         assert TrainConfig.from_record({**recorded, "csro": csro}).csro.club_negatives == negatives
     with pytest.raises(ValueError, match="record_version must be an integer, got 'two'"):
         TrainConfig.from_record({**record, VERSION_KEY: "two"})
+    with pytest.raises(ValueError, match="record_version 3. was written by a newer bati"):
+        TrainConfig.from_record({**record, VERSION_KEY: 3})
 
 
 def test_committed_run_directories_keep_their_digests(monkeypatch):

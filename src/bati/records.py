@@ -47,9 +47,12 @@ def read_record(record: dict, *, compact: bool = False) -> dict:
     version = record.get(VERSION_KEY, 1)
     if isinstance(version, bool) or not isinstance(version, int):
         raise ValueError(f"{VERSION_KEY} must be an integer, got {version!r}")
+    if version > RECORD_VERSION:
+        raise ValueError(f"this record ({VERSION_KEY} {version}) was written by a newer bati, which reads records up "
+                         f"to version {RECORD_VERSION} only: upgrade bati to read it")
     if version <= 1:
         record = _from_version_1(record)
-    record = {**record, VERSION_KEY: max(version, RECORD_VERSION)}
+    record = {**record, VERSION_KEY: RECORD_VERSION}
     return _compact(record) if compact else record
 
 
