@@ -40,12 +40,12 @@ SCALES: dict[str, dict[str, Any]] = {
 CHUNK = 256  # envs stepped in lockstep (fixed: the stochastic actions depend on it)
 
 
-def scale_sizes(family: str | TaskFamily, scale: str) -> tuple[int, int]:
-    """(n_episodes per training task, n_context_episodes per test task) of a scale (a size given as a
-    FamilyRecord field's name is the family's own)."""
+def scale_sizes(family: TaskFamily, scale: str) -> tuple[int, int]:
+    """(n_episodes per training task, n_context_episodes per test task) of a scale for `family` (a size given
+    as a FamilyRecord field's name is the family's own)."""
     if scale not in SCALES:
         raise ValueError(f"unknown scale {scale!r}; choose one of: {', '.join(SCALES)}")
-    record = as_family(family).record
+    record = family.record
     sizes = {k: getattr(record, v) if isinstance(v, str) else v for k, v in SCALES[scale].items()}
     return int(sizes["n_episodes"]), int(sizes["n_context_episodes"])
 

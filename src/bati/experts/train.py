@@ -70,7 +70,8 @@ class ExpertTrainConfig:
     sac: SACConfig = field(default_factory=SACConfig)
 
     def resolved(self) -> ExpertTrainConfig:
-        record = get_family(self.family).record  # validates the name early, too
+        family = get_family(self.family)  # validates the name early, too
+        record = family.record
         if record.expert_steps is None:
             raise ValueError(f"{self.family}'s expert is not a SAC (KuhnPoker: the exact best response, "
                              "bati.experts.kuhn, computed when needed): there is no SAC expert to train")
@@ -90,7 +91,7 @@ class ExpertTrainConfig:
         if self.tasks is not None and not self.per_task:
             raise ValueError("--tasks picks per-task experts: give it with --per-task")
         if self.tasks is not None:
-            n = len(get_family(self.family).split_tasks(0)[0])
+            n = len(family.split_tasks(0)[0])
             if not self.tasks or len(set(self.tasks)) != len(self.tasks) or not all(
                     isinstance(i, int) and 0 <= i < n for i in self.tasks):
                 raise ValueError(f"tasks={list(self.tasks)}: give distinct training-task indices in 0..{n - 1}")
