@@ -8,9 +8,9 @@ import socket
 
 import pytest
 
-import bati.run_dir as run_dir_module
 import bati.train as train_module
 from bati.cli import main
+from bati.data import Collection
 from bati.experiments import sweep as sweep_module
 from bati.experiments.sweep import Grid, SweepError, expand, make_jobs, sweep
 
@@ -125,7 +125,7 @@ def test_cli_bad_grid_is_one_line_and_exit_2(tmp_path, capsys):
 @pytest.fixture
 def local(monkeypatch, synthetic_data):
     data = synthetic_data("PointGoal")
-    monkeypatch.setattr(run_dir_module, "ensure_family_data", lambda *a, **k: data)
+    monkeypatch.setattr(Collection, "ensure", lambda *a, **k: data)
     monkeypatch.setattr(sweep_module, "prepare_data", lambda cells, progress: None)
     return data
 

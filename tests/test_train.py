@@ -17,6 +17,7 @@ import bati.checkpoints as checkpoints_module
 import bati.run_dir as run_dir_module
 import bati.train as train_module
 from bati.config import TrainConfig, family_of
+from bati.data import Collection
 from bati.envs import FAMILY_NAMES, get_family
 from bati.evaluate import Evaluator
 from bati.experts import load as load_expert
@@ -55,7 +56,7 @@ def test_every_method_trains_and_evaluates_on_every_family(method, family, synth
 @pytest.fixture
 def point_data(monkeypatch, synthetic_data):
     data = synthetic_data("PointGoal")
-    monkeypatch.setattr(run_dir_module, "ensure_family_data", lambda *a, **k: data)
+    monkeypatch.setattr(Collection, "ensure", lambda *a, **k: data)
     return data
 
 
@@ -142,7 +143,7 @@ def test_nan_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(tmp_pat
             train(_config(tmp_path, "nan", steps=20), show_progress=False)  # stops with a step-10 checkpoint
     before = (tmp_path / "nan" / "checkpoint.msgpack").read_bytes()
     poisoned = point_data.train.replace(rewards=jnp.full_like(point_data.train.rewards, jnp.nan))
-    monkeypatch.setattr(run_dir_module, "ensure_family_data", lambda *a, **k: type(point_data)(
+    monkeypatch.setattr(Collection, "ensure", lambda *a, **k: type(point_data)(
         **{**point_data.__dict__, "train": poisoned}))
     with pytest.raises(TrainingError, match="non-finite"):
         train(_config(tmp_path, "nan", steps=20), show_progress=False)
@@ -175,7 +176,7 @@ def test_likelihood_split_reports_errors_for_each_part_of_eq8(tmp_path, monkeypa
     from bati.experiments import probes
     from bati.report import likelihood
 
-    monkeypatch.setattr(run_dir_module, "load_family_data", lambda *a, **k: point_data)
+    monkeypatch.setattr(Collection, "load", lambda *a, **k: point_data)
     train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
     report = probes.likelihood_split(tmp_path / "run", context_length=20)
     max_distance = 2.0  # PointGoal goals lie on the unit circle
@@ -215,7 +216,7 @@ def test_infer_and_novelty_on_a_trained_bati_auto_run(tmp_path, monkeypatch, poi
     from bati.cli import main
     from bati.experiments.probes import Probe, run_probe
 
-    monkeypatch.setattr(run_dir_module, "load_family_data", lambda *a, **k: point_data)
+    monkeypatch.setattr(Collection, "load", lambda *a, **k: point_data)
     train(_config(tmp_path, "run", steps=5, eval_every=5, method="bati-auto"), show_progress=False)
     run_dir = tmp_path / "run"
     evals = [json.loads(line) for line in (run_dir / "eval.jsonl").read_text().splitlines()]

@@ -18,7 +18,8 @@ import tyro
 
 from bati.checks import check_finite_fields, check_hidden_dims, check_integer, check_number
 from bati.data.own import OWN_FAMILY, family_of  # noqa: F401 (family_of: imported from here by others)
-from bati.envs import TaskSplit
+from bati.data.batch import Collection
+from bati.envs import TaskFamily, TaskSplit
 from bati.io import read_run_config
 from bati.methods import METHODS, method_config_key, method_sections, section_methods, section_readers
 from bati.records import (  # noqa: F401 (differing_settings, digest_view: imported from here by others)
@@ -196,15 +197,16 @@ class TrainConfig:
             raise ValueError(f"{path} has setting(s) this version does not know: {', '.join(map(repr, unknown))}")
         return cls.from_record(record)
 
-    def record(self) -> dict:
-        """The config as JSON data (config.json): only the run's own method's hyperparameters."""
+    def record(self, family: TaskFamily | None = None) -> dict:
+        """The config as JSON data (config.json): only the run's own method's hyperparameters. `family`: the
+        config's family object, when the caller has it (its version is recorded)."""
         own = method_config_key(self.method)
         others = set(method_sections()) - {own}
         values = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in others}
         values = {name: asdict(value) if is_dataclass(value) else value for name, value in values.items()}
         record = json.loads(json.dumps(values, default=str))
         if self.family not in (None, OWN_FAMILY):  # the env's version is part of what the run trained on
-            record["family_version"] = family_of(self.family).record.version
+            record["family_version"] = (family or family_of(self.family)).record.version
         record[VERSION_KEY] = RECORD_VERSION
         return record
 
@@ -228,6 +230,12 @@ class TrainConfig:
     def resolved(self) -> TrainConfig:
         """Every default filled in (an explicit default and None give the same config) and every value
         checked, before any work: ValueError / TaskError with one line naming the setting."""
+        return self.resolve().config
+
+    def resolve(self, family: TaskFamily | None = None) -> ResolvedRun:
+        """The run resolved into typed values (`ResolvedRun`: the config with every default filled, the family
+        object, its collection), every value checked before any work. `family`: the config's family when the
+        caller has looked it up already (one lookup by name per entry point)."""
         own = bool(self.datasets)
         if own and self.family not in (None, OWN_FAMILY):
             raise ValueError(f"--datasets trains on your own data (family {OWN_FAMILY!r}), not on {self.family}: "
@@ -245,7 +253,10 @@ class TrainConfig:
 
             check_eval_env(self.eval_env, self.task_key)
         name = OWN_FAMILY if own else (self.family or "PointGoal")
-        family = family_of(name, self.context_length)  # TaskError for an unknown family
+        if family is None:
+            family = family_of(name, self.context_length)  # TaskError for an unknown family
+        elif family.name != name:
+            raise ValueError(f"resolving a {name} config with the family {family.name}")
         if self.method not in METHODS:
             raise ValueError(f"unknown method {self.method!r}; choose one of: {', '.join(METHODS)}")
         scale = get_scale(self.scale)
@@ -280,7 +291,7 @@ class TrainConfig:
         steps = pick(self.steps, scale.steps)
         tenth = max(self.log_every, (steps // 10) // self.log_every * self.log_every)
         eval_every = pick(self.eval_every, tenth)
-        out = pick(self.out_dir, Path("runs") / name / self.scale / f"{self.method}-seed{self.seed}")
+        out = pick(self.out_dir, default_run_dir(name, self.scale, self.method, self.seed))
         split = None if own else self.task_split().checked(family)  # TaskError for a bad count or range
         if own:
             if METHODS[self.method].needs_expert_actions:
@@ -337,7 +348,48 @@ class TrainConfig:
         if resolved.eval_every % self.log_every or resolved.checkpoint_every % self.log_every:
             raise ValueError(f"eval_every ({resolved.eval_every}) and checkpoint_every ({resolved.checkpoint_every}) "
                              f"must be multiples of log_every ({self.log_every})")
-        return resolved
+        collection = None if own else Collection(
+            family, resolved.data_scale, resolved.data_seed, resolved.noise, resolved.data_root, resolved.task_split(),
+            resolved.experts, resolved.episodes_per_task, resolved.context_episodes)
+        return ResolvedRun(resolved, family, collection)
+
+
+@dataclass(frozen=True)
+class ResolvedRun:
+    """A run resolved once at its entry point (`TrainConfig.resolve`) and passed down as typed values."""
+
+    config: TrainConfig
+    """Every default filled in: what config.json records (names, not objects)."""
+    family: TaskFamily
+    """The family object (an OwnFamily on your own datasets)."""
+    collection: Collection | None
+    """The collection it trains on (None: your own datasets, `config.datasets`)."""
+
+    @property
+    def iql(self) -> IQLConfig:
+        return self.config.iql
+
+    @property
+    def method_config(self) -> Any:
+        """The run's method's hyperparameters (None for a method without any)."""
+        return self.config.method_config()
+
+    def record(self) -> dict:
+        """config.json's record of the run."""
+        return self.config.record(self.family)
+
+    def for_seed(self, seed: int, out_dir: Path | None = None) -> ResolvedRun:
+        """The same run with another seed, in `out_dir` (default: the seed's default directory); the seed is
+        not checked here (`bati.run_dir.check_seeds`)."""
+        config = replace(self.config, seed=seed, out_dir=out_dir or default_run_dir(self.config.family,
+                                                                                     self.config.scale,
+                                                                                     self.config.method, seed))
+        return replace(self, config=config)
+
+
+def default_run_dir(family: str, scale: str, method: str, seed: int) -> Path:
+    """Where a run goes when no --out-dir is given."""
+    return Path("runs") / family / scale / f"{method}-seed{seed}"
 
 
 def rerun_config(recorded: str | Path, given: TrainConfig) -> TrainConfig:

@@ -19,11 +19,10 @@ import jax
 import numpy as np
 
 from bati.checkpoints import CHECKPOINT_NAME, load_checkpoint
-from bati.config import NOT_IDENTITY, TrainConfig, differing_settings
-from bati.data import FamilyData, ensure_family_data, load_family_data
-from bati.data.own import family_of, load_own_data
+from bati.config import NOT_IDENTITY, ResolvedRun, TrainConfig, differing_settings
+from bati.data import FamilyData
+from bati.data.own import load_own_data
 from bati.device import describe_device
-from bati.envs import TaskFamily
 from bati.errors import BatiError
 from bati.experts.zoo import load_for as load_expert
 from bati.io import (
@@ -40,7 +39,7 @@ from bati.io import (
 )
 from bati.trainer import Trainer, TrainState
 
-__all__ = ["FinishedRun", "RunInputs", "TrainingError", "check_seeds", "claim_run_dirs", "companion_configs",
+__all__ = ["FinishedRun", "RunInputs", "TrainingError", "check_seeds", "claim_run_dirs", "companion_runs",
            "drop_records_after", "follows", "open_run", "own_env", "summarize_run"]
 
 DATASETS_RECORD = "datasets.json"
@@ -58,11 +57,12 @@ def check_seeds(seeds) -> tuple[int, ...]:
     return seeds
 
 
-def companion_configs(configs: list[TrainConfig], also) -> list[list[TrainConfig]]:
-    """For each run's config, those of the methods `also` evaluated alongside it in sibling directories; ValueError
+def companion_runs(runs: list[ResolvedRun], also) -> list[list[ResolvedRun]]:
+    """For each run, those of the methods `also` evaluated alongside it in sibling directories; ValueError
     (one line) for a method that trains otherwise, or runs that are not a sweep's `<method>-seed<s>`."""
     from bati.methods import METHODS, training_of
 
+    configs = [run.config for run in runs]
     config, also = configs[0], tuple(dict.fromkeys(also))
     for method in also:
         if method not in METHODS:
@@ -77,8 +77,8 @@ def companion_configs(configs: list[TrainConfig], also) -> list[list[TrainConfig
         if c.out_dir.name != f"{c.method}-seed{c.seed}":
             raise ValueError(f"evaluating methods alongside a run needs the sweep's run directories, named "
                              f"<method>-seed<seed>, not {c.out_dir.name!r}")
-    return [[replace(c, method=m, out_dir=c.out_dir.parent / f"{m}-seed{c.seed}").resolved() for m in also]
-            for c in configs]
+    return [[replace(run.config, method=m, out_dir=run.config.out_dir.parent / f"{m}-seed{run.config.seed}")
+             .resolve(run.family) for m in also] for run in runs]
 
 
 def follows(companion: TrainConfig, run_dir: Path, step: int) -> bool:
@@ -100,32 +100,32 @@ def follows(companion: TrainConfig, run_dir: Path, step: int) -> bool:
 
 
 @contextlib.contextmanager
-def claim_run_dirs(configs: list[TrainConfig], family: TaskFamily):
-    """Hold the run directories of `configs` (locks; `family`: theirs, resolved) while training: each is checked
-    before anything is written (a file in its place, an unwritable data root, a directory of another config: one
-    line), and one this call creates is forgotten again if it fails before its first record."""
-    _check_paths(configs, family)
+def claim_run_dirs(runs: list[ResolvedRun]):
+    """Hold the run directories of `runs` (locks) while training: each is checked before anything is written (a
+    file in its place, an unwritable data root, a directory of another config: one line), and one this call
+    creates is forgotten again if it fails before its first record."""
+    _check_paths(runs)
     with contextlib.ExitStack() as claimed:
-        for c in configs:
-            claimed.enter_context(hold_lock(c.out_dir / LOCK_NAME, f"the run directory {c.out_dir}"))
-            claimed.enter_context(_forgotten_unless_started(c.out_dir))
-            _check_run_dir(c.out_dir, c)
+        for run in runs:
+            out = run.config.out_dir
+            claimed.enter_context(hold_lock(out / LOCK_NAME, f"the run directory {out}"))
+            claimed.enter_context(_forgotten_unless_started(out))
+            _check_run_dir(out, run)
         yield
 
 
-def _check_paths(configs: list[TrainConfig], family: TaskFamily) -> None:
+def _check_paths(runs: list[ResolvedRun]) -> None:
     """Refuse run directories and a data root that are files (or unwritable where we must write) with
     one line, before anything is written anywhere."""
     from bati.data import store
 
-    for c in configs:
-        check_directory(c.out_dir, "the run directory")
-    c = configs[0]
-    if c.datasets:  # a user's own datasets: read, never written
+    for run in runs:
+        check_directory(run.config.out_dir, "the run directory")
+    c = runs[0].collection
+    if c is None:  # a user's own datasets: read, never written
         return
-    collection = store.collection_dir(c.data_root, family, c.data_scale, c.data_seed, c.noise,
-                                      c.task_split(), c.experts)
-    check_directory(c.data_root, "the data root", writable=not (collection / store.MANIFEST).is_file())
+    collection = store.collection_dir(c.root, c.family, c.scale, c.seed, c.noise, c.tasks, c.experts)
+    check_directory(c.root, "the data root", writable=not (collection / store.MANIFEST).is_file())
 
 
 @contextlib.contextmanager
@@ -184,45 +184,48 @@ def check_datasets_unchanged(out: Path, fingerprint: dict[str, str]) -> None:
 
 @dataclass
 class RunInputs:
-    """What runs of one config train on, resolved once at the entry point and passed down: the family
-    (an OwnFamily for your own datasets), the data and the family's expert (None on your own data)."""
+    """What runs of one config train on, read once at the entry point and passed down: the resolved run,
+    its data and the family's expert (None on your own data)."""
 
-    config: TrainConfig
-    family: object
+    run: ResolvedRun
     data: FamilyData
     expert: object | None
 
+    @property
+    def config(self) -> TrainConfig:
+        return self.run.config
+
+    @property
+    def family(self):
+        """The family object (an OwnFamily for your own datasets)."""
+        return self.run.family
+
     @classmethod
-    def resolve(cls, config: TrainConfig, show_progress: bool = True, collect: bool = True,
-                family: TaskFamily | None = None) -> RunInputs:
-        """The inputs of a resolved config: its data collected if missing (`collect`) or read as it is.
-        `family`: the config's, when the caller has resolved it."""
-        family = family or family_of(config.family, config.context_length)
+    def read(cls, run: ResolvedRun, show_progress: bool = True, collect: bool = True) -> RunInputs:
+        """The inputs of a resolved run: its data collected if missing (`collect`) or read as it is."""
+        config, family = run.config, run.family
         if config.datasets:
             data = load_own_data(config.datasets, config.task_key, config.context_length, config.held_out,
                                  seed=config.data_seed)
             if config.task_batch > len(data.train_tasks):
                 raise ValueError(f"task_batch ({config.task_batch}) must be at most the {len(data.train_tasks)} tasks "
                                  "of your datasets: give --task-batch")
-            return cls(config, family, data, None)
+            return cls(run, data, None)
         from bati.methods import METHODS
 
         # training needs the expert (collection, reference returns): none is one line now, not after training;
         # a finished run is opened without it unless its method imitates it (DPT)
         needs_expert = collect or METHODS[config.method].needs_expert_actions
         expert = load_expert(family, config.zoo_dir, config.experts) if needs_expert else None
-        if collect:
-            data = ensure_family_data(family, config.data_scale, config.data_seed, config.noise,
-                                      config.data_root, n_episodes=config.episodes_per_task,
-                                      n_context_episodes=config.context_episodes, progress=show_progress,
-                                      tasks=config.task_split(), zoo_dir=config.zoo_dir, experts=config.experts)
-        else:
-            data = load_family_data(family, config.data_scale, config.data_seed, config.noise,
-                                    config.data_root, tasks=config.task_split(), experts=config.experts)
-        return cls(config, family, data, expert)
+        data = run.collection.ensure(show_progress, config.zoo_dir) if collect else run.collection.load()
+        return cls(run, data, expert)
 
     def trainer(self) -> Trainer:
         return Trainer(self.config, self.data, self.family, self.expert)
+
+    def with_method(self, run: ResolvedRun) -> RunInputs:
+        """The same data and expert for `run`, a method trained exactly as this one (evaluated alongside it)."""
+        return replace(self, run=run)
 
 
 @dataclass
@@ -254,11 +257,12 @@ def open_run(run_dir: Path, finished: bool = False) -> FinishedRun:
     when it holds no run config or no checkpoint, or (with `finished`) when the run has not reached its
     last step."""
     run_dir = Path(run_dir)
-    config = TrainConfig.from_record(read_run_config(run_dir)).resolved()
+    run = TrainConfig.from_record(read_run_config(run_dir)).resolve()
+    config = run.config
     checkpoint = run_dir / CHECKPOINT_NAME
     if not checkpoint.is_file():
         raise ValueError(f"{run_dir} has no checkpoint: train (or resume) the run first")
-    inputs = RunInputs.resolve(config, show_progress=False, collect=False)
+    inputs = RunInputs.read(run, show_progress=False, collect=False)
     trainer = inputs.trainer()
     state = load_checkpoint(checkpoint, trainer.init(jax.random.PRNGKey(0)))
     if finished and int(state.step) != config.steps:
@@ -296,9 +300,9 @@ def summarize_run(out: Path, last: int = 5) -> dict:
     return summary
 
 
-def _check_run_dir(out: Path, config: TrainConfig) -> None:
+def _check_run_dir(out: Path, run: ResolvedRun) -> None:
     """A run directory belongs to one resolved config: refuse to resume a run that differs in any setting."""
-    current = config.record()
+    current = run.record()
     identity = tuple(k for k in current if k not in NOT_IDENTITY)
     runtime = {"device": describe_device(), "jax_version": jax.__version__, **code_record()}
     check_run_config(out / "config.json", {**current, "runtime": runtime}, identity, differing_settings)

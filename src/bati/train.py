@@ -25,10 +25,10 @@ import jax.numpy as jnp
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from bati.checkpoints import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
-from bati.config import TrainConfig
+from bati.config import ResolvedRun, TrainConfig
 from bati.data import FamilyData
-from bati.data.own import family_of
 from bati.device import describe_device
+from bati.envs import TaskFamily
 from bati.evaluate import Evaluator, OfflineEvaluator, reference_returns
 from bati.evaluations import EvaluatedBeside, RunEvaluations
 from bati.io import append_jsonl, atomic_write_bytes, atomic_write_json, atomic_write_text, code_record
@@ -38,7 +38,7 @@ from bati.run_dir import (
     check_datasets_unchanged,
     check_seeds,
     claim_run_dirs,
-    companion_configs,
+    companion_runs,
     drop_records_after,
     follows,
     own_env,
@@ -61,7 +61,8 @@ def train(config: TrainConfig, show_progress: bool = True) -> dict:
 
 
 def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool = True,
-                runs_dir: Path | None = None, references: dict | None = None, also: tuple[str, ...] = ()) -> list[dict]:
+                runs_dir: Path | None = None, references: dict | None = None, also: tuple[str, ...] = (),
+                family: TaskFamily | None = None) -> list[dict]:
     """Train (or resume) one run per seed of one config as one compiled program vmapped over seeds.
 
     Each seed has its own run directory (`runs_dir/<method>-seed<s>`, default: the config's default
@@ -71,17 +72,18 @@ def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool
     (`bati run` computes them once for all its methods); by default they are computed here. `also`: methods
     that train exactly as this one, evaluated alongside each run into `<method>-seed<s>` beside it (see the
     module docstring); one that is finished, has a checkpoint of its own or has evaluations the run does not
-    match is left alone (it trains on its own).
+    match is left alone (it trains on its own). `family`: the config's family object, when the caller has looked
+    it up already.
     """
     seeds = check_seeds(seeds)
     if len(seeds) > 1 and config.out_dir is not None and runs_dir is None:
         raise ValueError("several seeds need one directory each: give runs_dir (the parent), not out_dir")
-    configs = [replace(config, seed=s, out_dir=(runs_dir / f"{config.method}-seed{s}") if runs_dir else
-                       config.out_dir).resolved() for s in seeds]
-    companions = companion_configs(configs, also)
-    family = family_of(configs[0].family, configs[0].context_length)  # the one lookup by name
-    with claim_run_dirs(configs + [c for group in companions for c in group], family):
-        return _train_claimed(configs, companions, family, show_progress, references)
+    out_dir = lambda seed: runs_dir / f"{config.method}-seed{seed}" if runs_dir else config.out_dir  # noqa: E731
+    first = replace(config, seed=seeds[0], out_dir=out_dir(seeds[0])).resolve(family)  # a lookup by name, if any
+    runs = [first.for_seed(s, out_dir(s)) for s in seeds]
+    companions = companion_runs(runs, also)
+    with claim_run_dirs(runs + [c for group in companions for c in group]):
+        return _train_claimed(runs, companions, show_progress, references)
 
 
 @dataclass
@@ -107,34 +109,36 @@ class SeedRun:
         return int(self.state.step)
 
     @classmethod
-    def open(cls, config: TrainConfig, trainer: Trainer, companions: list[TrainConfig]) -> SeedRun:
+    def open(cls, run: ResolvedRun, trainer: Trainer, companions: list[ResolvedRun]) -> SeedRun:
         """Start fresh or resume from the run directory's checkpoint (the directory is already claimed)."""
+        config = run.config
         base_key = jax.random.PRNGKey(config.seed)
         state = trainer.init(jax.random.fold_in(base_key, 0))
         if (config.out_dir / CHECKPOINT_NAME).exists():
             state = load_checkpoint(config.out_dir / CHECKPOINT_NAME, state)
         drop_records_after(config.out_dir, int(state.step))
-        sinks = open_sinks(config.log_to, config.out_dir, config.record()) if config.log_to else []
-        following = [c for c in companions if follows(c, config.out_dir, int(state.step))]
+        sinks = open_sinks(config.log_to, config.out_dir, run.record()) if config.log_to else []
+        following = [c.config for c in companions if follows(c.config, config.out_dir, int(state.step))]
         return cls(config, state, base_key, sinks, following)
 
 
-def _train_claimed(configs: list[TrainConfig], companions: list[list[TrainConfig]], family, show_progress: bool,
+def _train_claimed(resolved: list[ResolvedRun], companions: list[list[ResolvedRun]], show_progress: bool,
                    references: dict | None) -> list[dict]:
     """train_seeds once its run directories are checked, claimed and locked."""
-    config = configs[0]
-    inputs = RunInputs.resolve(config, show_progress, family=family)
+    config = resolved[0].config
+    inputs = RunInputs.read(resolved[0], show_progress)
     data, trainer = inputs.data, inputs.trainer()
     if config.datasets:
         evaluator = OfflineEvaluator(trainer, data, config.eval_context_length, *own_env(config, data))
-        for c in configs:  # the data a run started on is the data it resumes on
-            check_datasets_unchanged(Path(c.out_dir), data.manifest["fingerprint"])
+        for run in resolved:  # the data a run started on is the data it resumes on
+            check_datasets_unchanged(Path(run.config.out_dir), data.manifest["fingerprint"])
     else:
         evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length, family=inputs.family,
                               workers=config.eval_workers)
-    runs = [SeedRun.open(c, trainer, group) for c, group in zip(configs, companions)]
-    modes = {c.method: evaluator.inferring_with(replace(inputs, config=c).trainer().method)
-             for run in runs for c in run.companions}
+    runs = [SeedRun.open(run, trainer, group) for run, group in zip(resolved, companions)]
+    followed = {c.method for run in runs for c in run.companions}
+    modes = {c.config.method: evaluator.inferring_with(inputs.with_method(c).trainer().method)
+             for group in companions for c in group if c.config.method in followed}
     start = time.perf_counter()
     progress = Progress(
         TextColumn(f"[bold]{config.method} on {config.family}" + (f" x{len(runs)} seeds" if len(runs) > 1 else "")),

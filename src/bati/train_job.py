@@ -36,12 +36,13 @@ def run_train_job(job: TrainJob, *, console) -> None:
     from bati.train import train_seeds
 
     config = job.train_config()
-    family = config.resolved().family  # checks every setting before any work
+    run = config.resolve()  # checks every setting before any work
+    family = run.config.family
     runs_dir = (config.out_dir or Path("runs") / family / config.scale) if job.seeds else None
     if job.seeds:
         config = replace(config, out_dir=None)
     for summary in train_seeds(config, job.seeds or (config.seed,), runs_dir=runs_dir,
-                               show_progress=console.is_terminal):
+                               show_progress=console.is_terminal, family=run.family):
         console.print(f"{config.method} on {family}, seed {summary['seed']}: {result_line(summary)} "
                       f"(mean of the last {summary['evaluations_averaged']} evaluations)")
 

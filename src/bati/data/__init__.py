@@ -21,6 +21,7 @@ _EXPORTS = {
     "collection_dir": "bati.data.store",
     "TaskData": "bati.data.batch",
     "FamilyData": "bati.data.batch",
+    "Collection": "bati.data.batch",
     "load_family_data": "bati.data.batch",
     "ensure_family_data": "bati.data.batch",
     "sample_batch": "bati.data.batch",

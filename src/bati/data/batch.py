@@ -280,6 +280,41 @@ def ensure_family_data(
     return load_family_data(family, scale, seed, noise, root, cache=cache, tasks=tasks, experts=experts)
 
 
+@dataclass(frozen=True)
+class Collection:
+    """Which collection a run trains on, its family resolved (`TrainConfig.resolve`): what `load` reads and
+    `ensure` collects first when it is missing. `n_episodes` / `n_context_episodes`: sizes other than the
+    scale's (a collection of other sizes needs its own root)."""
+
+    family: TaskFamily
+    scale: str
+    seed: int
+    noise: float
+    root: Path
+    tasks: TaskSplit
+    experts: str = "conditioned"
+    n_episodes: int | None = None
+    n_context_episodes: int | None = None
+
+    def load(self) -> FamilyData:
+        """The collection as it is on disk (DatasetNotFoundError, with the collect command, if missing)."""
+        return load_family_data(self.family, self.scale, self.seed, self.noise, self.root, tasks=self.tasks,
+                                experts=self.experts)
+
+    def collect(self, progress: bool = True, zoo_dir: str | Path | None = None):
+        """Collect it if it is not on disk yet (`bati.data.collect.collect`)."""
+        from bati.data.collect import collect
+
+        return collect(self.family, self.scale, self.seed, self.noise, self.root, n_episodes=self.n_episodes,
+                       n_context_episodes=self.n_context_episodes, zoo_dir=zoo_dir, progress=progress,
+                       tasks=self.tasks, experts=self.experts)
+
+    def ensure(self, progress: bool = True, zoo_dir: str | Path | None = None) -> FamilyData:
+        """Collect it if missing, then load it."""
+        self.collect(progress, zoo_dir)
+        return self.load()
+
+
 def _read_minari(path: Path, manifest: dict, obs_dim: int, action_dim: int, length: int) -> dict:
     arrays = {}
     n_train = len(manifest["train_tasks"])

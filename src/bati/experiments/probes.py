@@ -212,7 +212,6 @@ def has_task_table(method: str) -> bool:
 def likelihood_split(run_dir: Path, context_length: int = 200, seed: int = 0) -> dict:
     """The likelihood split (see the module) of the run's last checkpoint."""
     from bati.data import sample_contexts
-    from bati.envs import get_family
     from bati.inference import InferenceError, load_run
     from bati.methods.dynamics import context_nll_terms
 
@@ -222,7 +221,7 @@ def likelihood_split(run_dir: Path, context_length: int = 200, seed: int = 0) ->
     run = load_run(run_dir, calibrate=False)
     config, data, params = run.config, run.data, run.params
     model, table = run.method.model, run.method.task_latents(params)
-    family = get_family(config.family)
+    family = run.family
     distances = family.distance_matrix(data.test_tasks, data.train_tasks)
     # "the collector's task": a training task with the collector's parameters (HalfCheetahDir's 20 training tasks
     # are two directions, so the collector's own index would miss the other tasks of its direction)

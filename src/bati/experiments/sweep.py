@@ -136,9 +136,9 @@ def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Ce
             if section not in {method_config_key(m) for m in methods}:
                 raise SweepError(f"{key} is read by {', '.join(section_readers(section))} only; "
                                  f"none of the grid's methods ({', '.join(methods)}) reads it")
-        families = [get_family(name).name for name in dict.fromkeys(grid.families)]
+        families = {family.name: family for family in map(get_family, dict.fromkeys(grid.families))}
         cells = []
-        for family in families:
+        for family in families.values():
             noises = list(dict.fromkeys(grid.noises)) or [None]
             for scale in dict.fromkeys(grid.scales):
                 for noise in noises:
@@ -146,8 +146,9 @@ def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Ce
                         for seed in dict.fromkeys(grid.seeds):
                             own = {k: v for k, v in overrides.items()
                                    if k not in sections or sections[k] == method_config_key(method)}
-                            config = apply_settings(TrainConfig(family=family, method=method, seed=seed, scale=scale,
-                                                                noise=noise, data_root=data_root), own).resolved()
+                            config = apply_settings(TrainConfig(family=family.name, method=method, seed=seed,
+                                                                scale=scale, noise=noise, data_root=data_root),
+                                                    own).resolve(family).config
                             cells.append(Cell(replace(config, out_dir=run_dir(out_dir, config))))
     except (ValueError, TypeError) as err:  # TaskError is a ValueError
         raise SweepError(str(err)) from err
@@ -251,24 +252,28 @@ def check_experts(cells: list[Cell]) -> None:
     """Every run needs its family's expert (reference returns, the collection, DPT's labels): a missing one
     is the zoo's one-line error before anything is written."""
     from bati.data.collect import load_expert
-    from bati.envs import get_family
 
+    families = _families(cells)
     for family, zoo_dir, experts in sorted({(c.config.family, c.config.zoo_dir, c.config.experts)
                                             for c in cells if not c.config.datasets}, key=str):
-        load_expert(get_family(family), zoo_dir, experts)
+        load_expert(families[family], zoo_dir, experts)
 
 
 def prepare_data(cells: list[Cell], progress: bool) -> None:
     """Collect every collection the cells need once, up front (in parallel over tasks), so that
     workers only read data and never collect the same collection twice."""
-    from bati.data.collect import collect
+    families = _families(cells)
+    needed = {(c.resolve(families[c.family]).collection, None if c.zoo_dir is None else str(c.zoo_dir))
+              for c in (cell.config for cell in cells) if not c.datasets}
+    for collection, zoo_dir in sorted(needed, key=lambda n: (n[0].family.name, str(n))):
+        collection.collect(progress, zoo_dir)
 
-    needed = {(c.family, c.data_scale, c.data_seed, c.noise, str(c.data_root), c.episodes_per_task, c.context_episodes,
-               c.task_split(), None if c.zoo_dir is None else str(c.zoo_dir), c.experts)
-              for c in (cell.config for cell in cells)}
-    for family, scale, seed, noise, root, n_episodes, n_context, tasks, zoo_dir, experts in sorted(needed, key=str):
-        collect(family, scale, seed, noise, root, n_episodes=n_episodes, n_context_episodes=n_context,
-                progress=progress, tasks=tasks, zoo_dir=zoo_dir, experts=experts)
+
+def _families(cells: list[Cell]) -> dict:
+    """The cells' families by name (one lookup each)."""
+    from bati.envs import get_family
+
+    return {name: get_family(name) for name in {c.config.family for c in cells if not c.config.datasets}}
 
 
 # --- the sweep -------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from bati.envs import TaskFamily, get_family
+from bati.envs import TaskFamily
 from bati.envs.rollout import LockstepEnvs, rollout
 from bati.experts.base import Expert
 from bati.experts.sac import RESUME_IDENTITY, SAC, SACConfig, generator_from_state
@@ -100,11 +100,10 @@ def task_keys(seed: int, indices) -> jax.Array:
     return jnp.stack([jax.random.fold_in(jax.random.PRNGKey(seed), int(i)) for i in indices])
 
 
-def train_per_task_experts(config, show_progress: bool = True) -> Path:
-    """Train (or resume) the per-task experts of `config.family` (an ExpertTrainConfig with per_task);
-    returns the run directory."""
-    config = config.resolved()
-    family = get_family(config.family)
+def train_per_task_experts(run, show_progress: bool = True) -> Path:
+    """Train (or resume) the per-task experts of a resolved expert run (`ExpertTrainConfig.resolve()`, with
+    per_task); returns the run directory."""
+    config, family = run.config, run.family
     out: Path = config.out_dir
     check_directory(out, "the experts' run directory")
     check_directory(config.export_dir / config.family / PER_TASK_DIR, "the zoo directory", package=config.into_package)

@@ -18,7 +18,7 @@ import numpy as np
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from bati.checks import check_integer, check_number
-from bati.envs import get_family
+from bati.envs import TaskFamily, get_family
 from bati.envs.rollout import LockstepEnvs, rollout
 from bati.experts.sac import (
     RESUME_IDENTITY,
@@ -70,7 +70,12 @@ class ExpertTrainConfig:
     sac: SACConfig = field(default_factory=SACConfig)
 
     def resolved(self) -> ExpertTrainConfig:
-        family = get_family(self.family)  # validates the name early, too
+        """Every default filled in and every value checked, before any work (one line naming the setting)."""
+        return self.resolve().config
+
+    def resolve(self) -> ResolvedExperts:
+        """The run resolved once: its config with every default filled in, and its family object."""
+        family = get_family(self.family)  # the one lookup by name; an unknown family is one line
         record = family.record
         if record.expert_steps is None:
             raise ValueError(f"{self.family}'s expert is not a SAC (KuhnPoker: the exact best response, "
@@ -102,8 +107,17 @@ class ExpertTrainConfig:
         if total <= self.start_steps:
             raise ValueError(f"total_steps ({total:,}) must exceed start_steps ({self.start_steps:,}): SAC would never "
                              "update and the exported expert would be untrained")
-        return ExpertTrainConfig(**{**asdict(self), "total_steps": total, "out_dir": out, "export_dir": export,
-                                    "sac": self.sac})
+        config = ExpertTrainConfig(**{**asdict(self), "total_steps": total, "out_dir": out, "export_dir": export,
+                                      "sac": self.sac})
+        return ResolvedExperts(config, family)
+
+
+@dataclass(frozen=True)
+class ResolvedExperts:
+    """An expert training run resolved at its entry point (`ExpertTrainConfig.resolve`)."""
+
+    config: ExpertTrainConfig
+    family: TaskFamily
 
 
 class ReplayBuffer:
@@ -139,12 +153,16 @@ class ReplayBuffer:
 def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
     """Train (or resume) the expert of `config.family` (or, with `per_task`, its per-task experts);
     returns the run directory."""
-    if config.per_task:
+    return train_resolved(config.resolve(), show_progress)
+
+
+def train_resolved(run: ResolvedExperts, show_progress: bool = True) -> Path:
+    """`train_expert` of a resolved run."""
+    if run.config.per_task:
         from bati.experts.per_task import train_per_task_experts
 
-        return train_per_task_experts(config, show_progress)
-    config = config.resolved()
-    family = get_family(config.family)
+        return train_per_task_experts(run, show_progress)
+    config, family = run.config, run.family
     out: Path = config.out_dir
     check_directory(out, "the expert's run directory")  # a file, or not writable: now, not after training
     check_directory(config.export_dir / config.family, "the zoo directory", package=config.into_package)
@@ -218,8 +236,8 @@ def train_expert(config: ExpertTrainConfig, show_progress: bool = True) -> Path:
 def train_and_export(config: ExpertTrainConfig, *, console) -> None:
     """`bati experts train`: every setting checked before any work (one line), the expert trained, and where
     it was exported printed on the rich `console`."""
-    config = config.resolved()
-    out = train_expert(config)
+    run = config.resolve()
+    config, out = run.config, train_resolved(run)
     where = "the package zoo (every later collection of it uses this expert)" if config.into_package else \
         f"{config.export_dir} (collect with --zoo-dir {config.export_dir})"
     if config.per_task:
