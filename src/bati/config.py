@@ -54,8 +54,8 @@ class Scale:
 
 SCALES: dict[str, Scale] = {
     "quick": Scale(data="quick", steps=3_000, batch_size=64, hidden_dims=QUICK_RL_HIDDEN_DIMS),
-    # The paper's data and steps with the quick batch and nets: what a 2-core CPU affords (docs/results.md,
-    # "The cpu scale": the IQL oracle's curves on this data, measured before the choice).
+    # The paper's data and steps with the quick batch and nets: what a 2-core CPU affords
+    # (docs/performance.md, "The cpu scale: wall time per run").
     "cpu": Scale(data="paper", steps=100_000, batch_size=64, hidden_dims=QUICK_RL_HIDDEN_DIMS),
     "paper": Scale(data="paper", steps=100_000, batch_size=256, hidden_dims=TABLE3_HIDDEN_DIMS),
 }

@@ -125,7 +125,7 @@ DECLARED = (
     Study(RESULTS / "quick/kuhn-context200/kuhn", "Kuhn poker with contexts of 200 transitions", "kuhn", "quick",
           ("eval_context_length=200", CLUB_ANY),
           methods=("bati", "bati-r", "recon", "unicorn", "csro", "focal", "oracle", "no-context")),
-    Study(RESULTS / "quick/bati-run/report", "`bati run`'s default: BATI, BATI-R and the oracle on PointGoal",
+    Study(RESULTS / "quick/bati-run/report", "`bati run`'s default: BATI, BATI-R and Recon on PointGoal",
           command="bati run --out-dir results/quick/bati-run"),
     Study(RESULTS / "quick/pointgoal-convergence/report", "PointGoal at 3k and 12k steps: converged?",
           command="bati sweep --methods bati bati-r recon no-context --settings steps=3000|12000 "

@@ -26,7 +26,8 @@ from bati.report.tables import METHOD_LABELS
 
 MAIN_JOB_STEPS = {"quick": 12_000}
 """The main job's default budget: at the quick scale's 3,000 steps full BATI's inference has not converged on
-PointGoal (p_test -360.9, below Recon); at 12,000 it has (-285.2, Recon -361.5): docs/results.md."""
+PointGoal (p_test -360.9, below Recon); at 12,000 it has (-285.2, Recon -361.5):
+results/quick/pointgoal-convergence/report/report.md."""
 
 HOLDS = 0.1
 """A method holds under p_test contexts when its normalised p_test score is at most this below its p_train one."""

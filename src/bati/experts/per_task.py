@@ -3,9 +3,9 @@
 Task i of `split_tasks(seed=0)`'s training tasks has its own env (fixed to task i, eps = 0), replay
 buffer, networks, optimiser states, jax key and numpy generator. Each iteration steps the n envs
 once (one lockstep call) and, every `update_every` steps, applies `update_every * updates_per_step`
-SAC updates to every task in one jitted call: `SAC.update_many` vmapped over the task axis. A task's
-random streams depend only on (seed, its index), so training a subset of the tasks (`tasks`) gives
-each of them the parameters the full program gives it (tested).
+SAC updates to every task in one jitted call: `SAC.update_many` mapped over the task axis (`lax.map`).
+A task's random streams depend only on (seed, its index), so training a subset of the tasks (`tasks`)
+gives each of them the parameters the full program gives it (tested).
 
 The actors read the observation only (task_dim 0: expert i is "the expert of task i", not a policy
 conditioned on a task). Exported as one stacked actor file per family (`<zoo>/<Family>/per-task/`).
