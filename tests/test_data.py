@@ -608,3 +608,12 @@ def test_a_collection_of_another_env_shape_is_not_already_collected(tiny_copy):
     (tiny_copy / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(store.DatasetError, match="obs_dim/action_dim 3/2 do not match the PointGoal env's 2/2"):
         tiny(tiny_copy.parents[1])
+
+
+def test_bati_data_collect_is_always_the_module():
+    import subprocess
+    import sys
+
+    code = ("import bati.data as d, types; first = d.collect; import bati.data.collect; "
+            "assert isinstance(first, types.ModuleType) and d.collect is first and callable(d.collect.collect)")
+    subprocess.run([sys.executable, "-c", code], check=True)

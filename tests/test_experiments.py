@@ -300,7 +300,7 @@ def test_a_bati_runs_likelihood_split_is_saved_before_the_next_job_starts(tmp_pa
         return [{}]
 
     monkeypatch.setattr(sweep_module, "run_job", fake_job)
-    monkeypatch.setattr(sweep_module, "prepare_data", lambda cells, progress: None)
+    monkeypatch.setattr(sweep_module, "prepare_data", lambda cells, progress, check_only=False: None)
     monkeypatch.setattr(sweep_module, "check_experts", lambda cells: None)
     monkeypatch.setattr(specs_module, "likelihood_split_due",  # due until saved, as the real one (a file)
                         lambda run, step, length: f"split {Path(run).name}" not in events)

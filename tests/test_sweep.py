@@ -126,7 +126,7 @@ def test_cli_bad_grid_is_one_line_and_exit_2(tmp_path, capsys):
 def local(monkeypatch, synthetic_data):
     data = synthetic_data("PointGoal")
     monkeypatch.setattr(Collection, "ensure", lambda *a, **k: data)
-    monkeypatch.setattr(sweep_module, "prepare_data", lambda cells, progress: None)
+    monkeypatch.setattr(sweep_module, "prepare_data", lambda cells, progress, check_only=False: None)
     return data
 
 
@@ -334,3 +334,19 @@ def test_an_int_for_a_float_setting_is_the_same_cell_as_its_float(tmp_path):
     assert one["er-trl"].config.ertrl.metric_weight == 1.0 and isinstance(one["er-trl"].config.ertrl.metric_weight, float)
     steps = expand(Grid(methods=("bati",), settings=("steps=5",)), tmp_path)[0].config.steps
     assert steps == 5 and isinstance(steps, int)
+
+
+def test_a_collection_of_other_sizes_in_the_data_root_is_one_line_before_the_record_is_touched(tmp_path, capsys):
+    from bati.data.collect import collect
+
+    collect("PointGoal", "quick", 0, root=tmp_path / "data", progress=False, n_episodes=2, n_context_episodes=1)
+    out = tmp_path / "sweep"
+    out.mkdir()
+    (out / "sweep.json").write_text("the last sweep's record")
+    code = main(["sweep", "--families", "PointGoal", "--methods", "bati", "--settings", "episodes_per_task=3",
+                 "--data-root", str(tmp_path / "data"), "--out-dir", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    assert "holds 2 episodes per training task" in err and "another data root" in err
+    assert (out / "sweep.json").read_text() == "the last sweep's record"
+    assert sorted(p.name for p in out.iterdir()) == ["sweep.json"]

@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import importlib
 
+# `bati.data.collect` is the module (its function: `bati.data.collect.collect`); a lazy name `collect` would be
+# the function until the module is first imported and the module after, so there is none.
 _EXPORTS = {
-    "collect": "bati.data.collect",
     "make_plan": "bati.data.collect",
     "CollectResult": "bati.data.collect",
     "DatasetError": "bati.data.store",
@@ -35,4 +36,9 @@ __all__ = list(_EXPORTS)
 def __getattr__(name: str):
     if name in _EXPORTS:
         return getattr(importlib.import_module(_EXPORTS[name]), name)
+    try:  # a submodule (`bati.data.collect`), as after its import
+        return importlib.import_module(f"{__name__}.{name}")
+    except ModuleNotFoundError as err:
+        if err.name != f"{__name__}.{name}":
+            raise
     raise AttributeError(f"module 'bati.data' has no attribute {name!r}")

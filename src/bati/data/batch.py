@@ -301,13 +301,14 @@ class Collection:
         return load_family_data(self.family, self.scale, self.seed, self.noise, self.root, tasks=self.tasks,
                                 experts=self.experts)
 
-    def collect(self, progress: bool = True, zoo_dir: str | Path | None = None):
-        """Collect it if it is not on disk yet (`bati.data.collect.collect`)."""
+    def collect(self, progress: bool = True, zoo_dir: str | Path | None = None, check_only: bool = False):
+        """Collect it if it is not on disk yet (`bati.data.collect.collect`; `check_only`: only raise what
+        collecting would raise before any work)."""
         from bati.data.collect import collect
 
         return collect(self.family, self.scale, self.seed, self.noise, self.root, n_episodes=self.n_episodes,
                        n_context_episodes=self.n_context_episodes, zoo_dir=zoo_dir, progress=progress,
-                       tasks=self.tasks, experts=self.experts)
+                       tasks=self.tasks, experts=self.experts, check_only=check_only)
 
     def ensure(self, progress: bool = True, zoo_dir: str | Path | None = None) -> FamilyData:
         """Collect it if missing, then load it."""

@@ -90,7 +90,8 @@ def collect(
     workers: int | None = None,
     tasks: TaskSplit | None = None,
     experts: str = "conditioned",
-) -> CollectResult:
+    check_only: bool = False,
+) -> CollectResult | None:
     """Collect (or find cached) the datasets of `family` under `<root>/<Family>/<scale>-seed<S>-eps<eps>`.
 
     `n_episodes` / `n_context_episodes` override the scale's sizes (for tests and experiments);
@@ -99,7 +100,9 @@ def collect(
     datasets written are the same whatever their number. `tasks` changes which tasks train and test
     (counts, parameter ranges); a non-default split is its own collection (its label in the name).
     `experts`: "conditioned" (the family's task-conditioned SAC) or "per-task" (one SAC per training task,
-    App. C.2); per-task data is its own collection (`-per-task-experts` in its name).
+    App. C.2); per-task data is its own collection (`-per-task-experts` in its name). `check_only`: collect
+    nothing, only raise what collecting would raise before any work (a collection of other sizes in its
+    place, a data directory that is a file or not writable); returns None.
     """
     start = time.perf_counter()
     workers = check_workers(workers)
@@ -117,8 +120,10 @@ def collect(
 
     cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks, experts)
     if cached is not None:
-        return CollectResult(target, cached, True, time.perf_counter() - start)
+        return None if check_only else CollectResult(target, cached, True, time.perf_counter() - start)
     check_directory(target.parent, "the data directory")  # a file, or not writable: say so before any work
+    if check_only:
+        return None
 
     plan = make_plan(fam, seed, n_episodes, n_context_episodes, tasks)
     n_chunks = -(-plan.n_episodes // CHUNK)
@@ -273,7 +278,7 @@ def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episode
     if sizes != (n_episodes, n_context_episodes):
         raise ValueError(
             f"{target} holds {sizes[0]} episodes per training task and {sizes[1]} per context dataset, "
-            f"not the requested {n_episodes} / {n_context_episodes}; delete it or use another --root"
+            f"not the requested {n_episodes} / {n_context_episodes}; delete it or give another data root"
         )
     return manifest
 

@@ -259,14 +259,15 @@ def check_experts(cells: list[Cell]) -> None:
         load_expert(families[family], zoo_dir, experts)
 
 
-def prepare_data(cells: list[Cell], progress: bool) -> None:
+def prepare_data(cells: list[Cell], progress: bool, check_only: bool = False) -> None:
     """Collect every collection the cells need once, up front (in parallel over tasks), so that
-    workers only read data and never collect the same collection twice."""
+    workers only read data and never collect the same collection twice. `check_only`: collect nothing,
+    raise what collecting would raise before any work (e.g. a collection of other sizes in the data root)."""
     families = _families(cells)
     needed = {(c.resolve(families[c.family]).collection, None if c.zoo_dir is None else str(c.zoo_dir))
               for c in (cell.config for cell in cells) if not c.datasets}
     for collection, zoo_dir in sorted(needed, key=lambda n: (n[0].family.name, str(n))):
-        collection.collect(progress, zoo_dir)
+        collection.collect(progress, zoo_dir, check_only=check_only)
 
 
 def _families(cells: list[Cell]) -> dict:
@@ -354,6 +355,7 @@ def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("dat
         })
 
     check_experts(pending)
+    prepare_data(pending, progress=False, check_only=True)  # before the status file is written
     record()
     if jobs:
         prepare_data(pending, progress=show_progress)
