@@ -206,3 +206,20 @@ def test_another_methods_hyperparameters_are_refused_in_one_line(tmp_path, capsy
     err = capsys.readouterr().err
     assert "bati.latent_samples is read by bati" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "r").exists()
+
+
+def test_a_run_resolves_once_into_the_family_object_and_its_collection():
+    from bati.envs import get_family
+
+    run = TrainConfig(family="AntDir", scale="cpu", seed=1, episodes_per_task=50, experts="per-task").resolve()
+    assert run.family is not None and run.family.name == "AntDir" and run.config == \
+        TrainConfig(family="AntDir", scale="cpu", seed=1, episodes_per_task=50, experts="per-task").resolved()
+    c = run.collection
+    assert (c.family, c.scale, c.seed, c.noise, c.experts, c.n_episodes) == (run.family, "paper", 0, 1.0, "per-task", 50)
+    assert run.record() == run.config.record() and run.record()["family_version"] == run.family.record.version
+    other = run.for_seed(2)  # no lookup: the same family object, the seed's default directory
+    assert other.family is run.family and other.config.seed == 2
+    assert other.config.out_dir == TrainConfig(family="AntDir", scale="cpu", seed=2).resolved().out_dir
+    assert TrainConfig(family="AntDir").resolve(run.family).family is run.family
+    with pytest.raises(ValueError, match="resolving a AntDir config with the family PointGoal"):
+        TrainConfig(family="AntDir").resolve(get_family("PointGoal"))

@@ -617,3 +617,17 @@ def test_bati_data_collect_is_always_the_module():
     code = ("import bati.data as d, types; first = d.collect; import bati.data.collect; "
             "assert isinstance(first, types.ModuleType) and d.collect is first and callable(d.collect.collect)")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_a_resolved_runs_collection_reads_the_collection_it_names(small):
+    from bati.config import TrainConfig
+
+    result, data = small
+    root = result.path.parents[1]
+    run = TrainConfig(family=FAMILY, data_root=root, episodes_per_task=5, context_episodes=2).resolve()
+    assert run.collection.collect(progress=False).cached  # found, not collected again
+    assert run.collection.collect(check_only=True) is None
+    loaded = run.collection.ensure(progress=False)
+    assert loaded.path == data.path and loaded.fingerprint() == data.fingerprint()
+    with pytest.raises(ValueError, match="holds 5 episodes per training task"):
+        TrainConfig(family=FAMILY, data_root=root, episodes_per_task=6).resolve().collection.collect(check_only=True)

@@ -63,6 +63,8 @@ class Study:
     """`bati report` folders: where its runs are (default: the report folder's parent)."""
     command: str = ""
     """How its runs were made, where no experiment command says it."""
+    data_root: str | None = None
+    """The experiment's --data-root, where it is not the default (a collection of other sizes needs its own)."""
     store: bool = False
     """A scale's own experiments directory (results/<scale>/experiments): docs/results.md picks from these."""
 
@@ -83,6 +85,8 @@ class Study:
                 parts += [f"--{name}", *map(str, getattr(self, name))]
         if self.settings:
             parts += ["--settings", *self.settings]
+        if self.data_root:
+            parts += ["--data-root", self.data_root]
         return " ".join(parts + ["--out-dir", str(self.cells_dir)])
 
 
