@@ -365,15 +365,6 @@ class ResolvedRun:
     collection: Collection | None
     """The collection it trains on (None: your own datasets, `config.datasets`)."""
 
-    @property
-    def iql(self) -> IQLConfig:
-        return self.config.iql
-
-    @property
-    def method_config(self) -> Any:
-        """The run's method's hyperparameters (None for a method without any)."""
-        return self.config.method_config()
-
     def record(self) -> dict:
         """config.json's record of the run."""
         return self.config.record(self.family)
