@@ -77,22 +77,3 @@ def synthetic_data():
         return cache[name]
 
     return get
-
-
-TEST_BOOTSTRAP_REPS = 100
-
-
-@pytest.fixture(autouse=True)
-def fewer_bootstrap_replicates(monkeypatch):
-    """Intervals drawn with reports' 2,000 replicates (the default: the reports that CLI and experiment tests
-    write) draw 100 instead: rliable's probability of improvement costs ~5 ms a replicate, which made these reports
-    most of their tests' time. A test that chooses its replicates (tests/test_report.py) keeps them. Processes a
-    test starts are not patched."""
-    from bati.report import stats
-
-    real = stats._estimate
-
-    def estimate(scores, func, reps, seed):
-        return real(scores, func, TEST_BOOTSTRAP_REPS if reps == stats.BOOTSTRAP_REPS else reps, seed)
-
-    monkeypatch.setattr(stats, "_estimate", estimate)

@@ -318,3 +318,19 @@ def test_the_summary_row_reads_convergence_at_the_verdicts_own_data(tmp_path):
     row = next(line for line in claims_module.claims_markdown(findings, "bati claims").splitlines()
                if line.startswith("| C1"))
     assert "| cpu | yes (1 of 1 cell flat) |" in row  # the default data's cell, not the per-task one still falling
+
+
+def test_other_data_stands_beside_the_default_data_and_never_decides(tmp_path):
+    """Table 3's size read in total (its own results directory) is judged on its own line; the headline verdict
+    stays the default data's, even where only the other data test the claim."""
+    total = next(s for s in SOURCES if "episodes_per_task=50" in s.settings and "experts=per-task" in s.settings)
+    assert total.out_dir != CPU.out_dir and total.data
+    write_cells(tmp_path, total, "main", {("bati", "HalfCheetahDir"): (HIGH, LOW),
+                                          ("focal", "HalfCheetahDir"): (HIGH, HIGH)})
+    c1 = next(c for c in CLAIMS if c.name == "C1")
+    findings = decide(tmp_path)
+    assert overall(findings, c1) == ("not tested", "-")
+    assert claims_module.every_scale(findings, c1) == (
+        "cpu total size, per-task experts: not reproduced (HalfCheetahDir; 1 of 5 families)")
+    write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})
+    assert overall(decide(tmp_path), c1) == ("partly", "cpu")

@@ -485,3 +485,36 @@ def test_the_report_layer_imports_nothing_from_training():
     wrong = [(file, name) for file, name in imports
              if any(name == module or name.startswith(module + ".") for module in TRAINING_MODULES)]
     assert not wrong, wrong
+
+
+@pytest.mark.parametrize("shapes", [((5, 1), (4, 1)), ((3, 5), (3, 5)), ((7, 2), (2, 2))])
+def test_intervals_are_rliables_own(shapes):
+    """The replicates computed at once give rliable's numbers: the same draws, statistics and percentiles as
+    rliable.library.get_interval_estimates (seeded numpy global generator, 95% percentile interval)."""
+    import warnings
+
+    from rliable import library, metrics
+
+    from bati.report.stats import mean_interval
+
+    def reference(scores, func, reps=300, seed=3):
+        saved = np.random.get_state()
+        np.random.seed(seed)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", FutureWarning)
+                point, interval = library.get_interval_estimates({"x": scores}, func, reps=reps,
+                                                                 random_state=np.random.RandomState(seed))
+        finally:
+            np.random.set_state(saved)
+        return (float(np.asarray(point["x"]).reshape(())), *np.asarray(interval["x"]).reshape(2))
+
+    rng = np.random.default_rng(sum(sum(s) for s in shapes))
+    x = rng.normal(size=shapes[0]).round(1)  # rounded: ties between x and y occur
+    y = rng.normal(size=shapes[1]).round(1)
+    assert iqm_interval(x, reps=300, seed=3) == pytest.approx(
+        reference(x, lambda s: np.array([metrics.aggregate_iqm(s)])), abs=1e-12)
+    assert mean_interval(x, reps=300, seed=3) == pytest.approx(
+        reference(x, lambda s: np.array([metrics.aggregate_mean(s)])), abs=1e-12)
+    assert improvement_interval(x, y, reps=300, seed=3) == pytest.approx(
+        reference([x, y], lambda a, b: np.array([metrics.probability_of_improvement(a, b)])), abs=1e-12)

@@ -49,6 +49,9 @@ class Source:
     out_dir: Path
     scale: str
     settings: tuple[str, ...] = ()
+    data: str = ""
+    """Short name of data other than the default (our task-conditioned expert's, Table 3's size read per task):
+    such a source's verdicts stand beside the default data's (`every_scale`) and never decide a claim."""
 
 
 SOURCES = (
@@ -57,11 +60,16 @@ SOURCES = (
     Source("cpu (paper data, 100k steps, batch 16 x 64, IQL 128x128)", Path("results/cpu/experiments"), "cpu"),
     Source("paper (App. C data, 100k steps, batch 16 x 256, IQL 256x256)", Path("results/paper/experiments"), "paper"),
     # the same scales on data collected by one SAC expert per training task (App. C.2's way; the rows above: our
-    # task-conditioned expert's data)
+    # task-conditioned expert's data), then Table 3's dataset size read in total (50 episodes per training task)
     Source("cpu, per-task experts' data (one SAC per training task, App. C.2)", Path("results/cpu/experiments"), "cpu",
-           ("experts=per-task",)),
+           ("experts=per-task",), data="per-task experts"),
     Source("paper, per-task experts' data (one SAC per training task, App. C.2)", Path("results/paper/experiments"),
-           "paper", ("experts=per-task",)),
+           "paper", ("experts=per-task",), data="per-task experts"),
+    Source("cpu, Table 3's dataset size read in total (50 episodes per training task), our expert's data",
+           Path("results/cpu/total-data"), "cpu", ("episodes_per_task=50",), data="total size"),
+    Source("cpu, Table 3's dataset size read in total (50 episodes per training task), per-task experts' data",
+           Path("results/cpu/total-data"), "cpu", ("episodes_per_task=50", "experts=per-task"),
+           data="total size, per-task experts"),
 )
 
 
@@ -96,7 +104,7 @@ class Record:
 def gather(spec_name: str, source: Source, root: Path) -> list[Record]:
     """The records of the experiment's finished cells (and of their probes) at one scale."""
     spec = get_spec(spec_name)
-    if source.scale not in spec.scales:
+    if source.scale not in spec.scales or not (root / source.out_dir).is_dir():  # (a plan costs seconds)
         return []
     plan = plan_experiment(spec, source.scale, root / source.out_dir, seeds=ALL_SEEDS, settings=source.settings)
     records = []
@@ -468,18 +476,14 @@ def _tested(findings: list[Finding], claim: Claim) -> list[Finding]:
                   key=lambda f: SOURCES.index(f.source) if f.source in SOURCES else -1)
 
 
-def _per_task(source: Source) -> bool:
-    return "experts=per-task" in source.settings
-
-
 def _scale_name(finding: Finding) -> str:
-    return finding.source.label.split(" ")[0].rstrip(",") + (" per-task experts" if _per_task(finding.source) else "")
+    return finding.source.label.split(" ")[0].rstrip(",") + (f" {finding.source.data}" if finding.source.data else "")
 
 
 def overall(findings: list[Finding], claim: Claim) -> tuple[str, str]:
     """The verdict at the largest scale that tests the claim on the default data (our task-conditioned
-    expert's), and that scale's label; the per-task experts' data has its verdicts beside it (`every_scale`)."""
-    tested = [f for f in _tested(findings, claim) if not _per_task(f.source)]
+    expert's), and that scale's label; other data have their verdicts beside it (`every_scale`)."""
+    tested = [f for f in _tested(findings, claim) if not f.source.data]
     return (tested[-1].verdict, _scale_name(tested[-1])) if tested else ("not tested", "-")
 
 
@@ -538,7 +542,7 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
              "| --- | --- | --- | --- | --- | --- |"]
     for claim in CLAIMS:
         verdict, scale = overall(findings, claim)
-        tested = [f for f in _tested(findings, claim) if not _per_task(f.source)]  # the verdict's own scale
+        tested = [f for f in _tested(findings, claim) if not f.source.data]  # the verdict's own scale
         lines.append(f"| {claim.name}: {claim.text} | {claim.source} | **{verdict}** | {scale} | "
                      f"{converged_text(tested[-1], short=True) if tested else '-'} | {every_scale(findings, claim)} |")
     for claim in CLAIMS:
