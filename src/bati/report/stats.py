@@ -5,7 +5,9 @@ Score matrices are (runs, tasks) arrays, rliable's layout; one number per run is
 Here a "task" is whatever a report stratifies by: one family's table has one, the claims page's
 cross-family numbers have one column per family. Every interval is a 95% percentile interval of
 `BOOTSTRAP_REPS` stratified-bootstrap replicates (runs resampled within each column), drawn with
-`seed`: the same scores and seed give the same numbers.
+`seed`: the same scores and seed give the same numbers. The replicates are rliable's own draws, their
+statistics computed for all replicates at once rather than in rliable's Python loop (the same intervals to 1e-12:
+tests/test_report.py checks them against rliable.library.get_interval_estimates).
 
 rliable is the `stats` extra (pinned with arch 7.2 and pandas < 3: arch 8 rejects rliable's
 `random_state=None`, pandas 3 breaks arch 7); `require_rliable()` says so in one line before any work.
