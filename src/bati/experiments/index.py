@@ -117,7 +117,7 @@ DECLARED = (
           out_dir=RESULTS / "cpu/experiments"),
     Study(RESULTS / "cpu/total-data/experts", "Table 3's dataset size read in total: 50 episodes per training "
           "task on HalfCheetahDir instead of 1,000", "experts", "cpu", ("episodes_per_task=50",),
-          methods=("focal", "oracle"), families=("HalfCheetahDir",), data_root="data-total"),
+          methods=("bati", "bati-r", "focal", "oracle"), families=("HalfCheetahDir",), data_root="data-total"),
     Study(RESULTS / "cpu/focal-distance/main", "FOCAL with the root-mean distance in its metric loss", "main", "cpu",
           ("focal.distance=root-mean",), methods=("focal",), families=("AntDir",), seeds=(0,)),
     Study(RESULTS / "cpu/tanh/main", "FOCAL with a tanh on its latent", "main", "cpu",
