@@ -277,6 +277,33 @@ def test_vs_figure_puts_each_column_at_its_number_and_orders_columns_numerically
     assert (position("10/30"), position("200"), position("AntDir eps=0.5"), position("final")) == (10, 200, 0.5, None)
 
 
+def test_returns_by_task_value_average_the_test_tasks_of_each_value():
+    from bati.experiments.report import by_task_value_section, returns_by_task_value
+
+    cheetah = configs("experts", "cpu", families=["HalfCheetahDir"], methods=["focal"], seeds=[0])[0]
+    test_tasks = np.array(cheetah.task_split().draw(get_family("HalfCheetahDir"), cheetah.data_seed)[1])
+    returns = np.where(test_tasks > 0, 10.0, -4.0)
+    returns[np.flatnonzero(test_tasks > 0)[0]] = 30.0  # one right-running task differs: the mean moves
+    right = np.flatnonzero(test_tasks > 0)
+    raw = {"p_train_task_returns": returns.tolist(), "p_test_task_returns": (-returns).tolist()}
+    values = returns_by_task_value(cheetah, raw)
+    expected_right = (30.0 + 10.0 * (len(right) - 1)) / len(right)
+    assert values == pytest.approx({"by_task_p_train_-1": -4.0, "by_task_p_train_1": expected_right,
+                                    "by_task_p_test_-1": 4.0, "by_task_p_test_1": -expected_right})
+    assert returns_by_task_value(cheetah, {"p_train_task_returns": [1.0, 2.0]}) == {}  # not one per test task
+    ant = configs("experts", "cpu", families=["AntDir"], methods=["focal"], seeds=[0])[0]
+    assert returns_by_task_value(ant, {"p_train_task_returns": [1.0] * 20}) == {}  # directions: a continuum
+
+    spec = get_spec("experts")
+    records = [{"method": "focal", "seed": seed, "family_experts": "HalfCheetahDir per-task",
+                **{k: v + seed for k, v in values.items()}} for seed in (0, 1)]
+    section, csv_rows = by_task_value_section(spec, records)
+    row = next(line for line in section.splitlines() if line.startswith("| HalfCheetahDir per-task | focal"))
+    assert row.split(" | ")[2:4] == ["0 1", "-3.50 ± 0.50"]  # seeds, then p_train on task -1 first
+    assert {r["metric"] for r in csv_rows} == set(values)
+    assert by_task_value_section(spec, [{"method": "focal", "seed": 0}]) == ("", [])
+
+
 def test_a_bati_runs_likelihood_split_is_saved_before_the_next_job_starts(tmp_path, monkeypatch):
     """The split needs the run's checkpoint, which a GPU machine that may be taken away keeps only while it lives: it
     is written as each job ends, not after the whole sweep (at the paper scale no BATI run had one: every machine

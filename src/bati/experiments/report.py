@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bati.config import family_of
+from bati.errors import BatiError
 from bati.experiments.probes import probe_path, read_probe
 from bati.experiments.specs import Plan, Spec
 from bati.io import atomic_write_text, short_commit
@@ -27,7 +29,7 @@ from bati.report.build import (_csv_text, group_runs, group_title, method_order,
                                plot_profile)
 from bati.report.build import table_markdown as group_table
 from bati.report.curves import save_figure
-from bati.report.likelihood import read_likelihood_split
+from bati.report.likelihood import SOURCES, read_likelihood_split
 from bati.report.runs import RunResult, jobs_wall_time
 from bati.report.tables import METHOD_LABELS
 
@@ -73,7 +75,8 @@ def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
             split = read_likelihood_split(c.out_dir) if plan.spec.likelihood_split else None
             records.append({**base, "p_test_return": run.p_test_return, "p_train_return": run.p_train_return,
                             "p_test_inference_error": run.p_test_inference_error, **raw.get("diagnostics", {}),
-                            **{f"likelihood_{k}": split[k] for k in LIKELIHOOD_COLUMNS if split is not None}})
+                            **{f"likelihood_{k}": split[k] for k in LIKELIHOOD_COLUMNS if split is not None},
+                            **(returns_by_task_value(c, raw) if plan.spec.by_task_value else {})})
             continue
         for probe in probes:
             saved = read_probe(c.out_dir, probe)
@@ -151,6 +154,65 @@ LIKELIHOOD_COLUMNS = {"p_train_full_error": "p_train, full NLL", "p_test_full_er
                       "p_test_reward_error": "p_test, reward only (BATI-R)",
                       "p_test_state_error": "p_test, state only",
                       "p_test_state_picks_collector": "p_test, state only: share = collector's task"}
+
+
+MAX_TASK_VALUES = 4
+"""A family whose test tasks take at most this many values (HalfCheetahDir: left, right) gets the by-value table."""
+
+
+def returns_by_task_value(config, raw: dict) -> dict:
+    """The run's last evaluation, its returns averaged over the test tasks of each task value:
+    {"by_task_<p_train|p_test>_<value>": mean}. Empty unless the family's test tasks are a few scalars (the
+    tasks are drawn again from the run's split and data seed: runs do not store them)."""
+    try:
+        _, test_tasks = config.task_split().draw(family_of(config.family), config.data_seed)
+        values = np.asarray(test_tasks, float)
+    except (ValueError, TypeError, KeyError, BatiError):
+        return {}
+    if values.ndim != 1 or len(np.unique(values)) > MAX_TASK_VALUES:
+        return {}
+    out = {}
+    for source in SOURCES:
+        returns = np.asarray(raw.get(f"{source}_task_returns") or [], float)
+        if returns.shape != values.shape:
+            continue
+        out.update({f"by_task_{source}_{value:g}": float(returns[values == value].mean())
+                    for value in np.unique(values)})
+    return out
+
+
+def by_task_value_section(spec: Spec, records: list[dict]) -> tuple[str, list[dict]]:
+    """Return per test-task value, one row per (setting, method): mean ± std over seeds; and the CSV rows (metric
+    `by_task_<source>_<value>`). Empty when no record has them."""
+    def source_and_value(key: str) -> tuple[str, str]:  # "by_task_p_train_-1" -> ("p_train", "-1")
+        source, value = key[len("by_task_"):].rsplit("_", 1)
+        return source, value
+
+    keys = sorted({k for r in records for k in r if k.startswith("by_task_")},
+                  key=lambda k: (SOURCES.index(source_and_value(k)[0]), float(source_and_value(k)[1])))
+    if not keys:
+        return "", []
+    title = ("**Return by the test task's value** (the last evaluation's return per test task, averaged over the test "
+             "tasks of each value; mean ± std over seeds; p_train contexts come from the expert of a training task "
+             "with the same value, p_test ones from one with another value)")
+    labels = ["{}, task {}".format(*source_and_value(k)) for k in keys]
+    lines = [title, "", "| " + " | ".join([spec.columns.replace("_", " "), "method", "seeds", *labels]) + " |",
+             "|" + "---|" * (3 + len(keys))]
+    tables, csv_rows = {}, []
+    for key in keys:
+        _, _, entries = table_rows(spec, [r for r in records if key in r], key)
+        tables[key] = {(e["row"], e["column"]): e for e in entries}
+        csv_rows += [{**e, "metric": key} for e in entries if e["n_seeds"]]
+    cells = sorted({cell for table in tables.values() for cell in table},
+                   key=lambda rc: (_sort_key(rc[1]), method_order(rc[0])))
+    for row, column in cells:
+        entries = [tables[key].get((row, column)) for key in keys]
+        if not any(e and e["n_seeds"] for e in entries):
+            continue
+        seeds = next(e["seeds"] for e in entries if e and e["n_seeds"])
+        lines.append("| " + " | ".join([column, METHOD_LABELS.get(row, row), seeds,
+                                        *(_fmt(e) if e else "–" for e in entries)]) + " |")
+    return "\n".join(lines) + "\n", csv_rows
 
 
 def likelihood_section(spec: Spec, records: list[dict]) -> tuple[str, list[dict]]:
@@ -313,6 +375,11 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
         if section:
             sections.append(section)
             csv_rows += rows_of_split
+    if spec.by_task_value:
+        section, rows_by_value = by_task_value_section(spec, records)
+        if section:
+            sections.append(section)
+            csv_rows += rows_by_value
     groups = group_runs(runs)
     seeded = [g for g in groups if any(len(g.runs_of(m)) >= 2 for m in g.methods)]
     if spec.metric == "p_test_return" and seeded:  # rliable's IQM and P(BATI > method), per family and setting

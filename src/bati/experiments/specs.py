@@ -100,6 +100,9 @@ class Spec:
     """Keep `bati likelihood`'s split of Eq. 8 (`<run>/likelihood.json`) for each finished BATI run (the trained
     model's, which BATI-R and BATI-auto share), and report it: which term of the likelihood picks the task, and
     whether it picks the collector's."""
+    by_task_value: bool = False
+    """Report each method's return on the test tasks of each task value, where a family's tasks take a few values
+    (HalfCheetahDir: left and right): which tasks a method fails on."""
 
 
 def _settings(**values) -> tuple[str, ...]:
@@ -165,6 +168,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
                Part(("HalfCheetahDir", "AntDir"), EXPERTS_METHODS, settings=_settings(experts="per-task"))),
         columns="family_experts",
         likelihood_split=True,
+        by_task_value=True,
         paper=PaperTable("Table 4 (the paper's data: per-task experts)", {
             method: {f"{family} per-task": value for family, value in row.items() if family in ("HalfCheetahDir", "AntDir")}
             for method, row in {
