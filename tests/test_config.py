@@ -102,24 +102,30 @@ def test_an_old_record_upgrades_to_the_same_run():
 
 
 def test_method_settings_added_later_keep_old_runs_and_their_digests():
-    """focal.distance came after runs were recorded: a section without it is the squared distance, the
-    run it always was, and its sweep digest does not change whether the field is written or not."""
+    """focal.distance and focal.same_task came after runs were recorded: a section without them is the squared
+    distance and pairs by training task, the run it always was, and its sweep digest does not change whether the
+    fields are written or not."""
     for method, key in (("focal", "focal"), ("er-trl", "ertrl"), ("unicorn", "unicorn")):
         config = TrainConfig(family="AntDir", method=method).resolved()
         new = config.record()
         old = json.loads(json.dumps(new))
-        old[key].pop("distance")
+        for field in ("distance", "same_task"):
+            old[key].pop(field)
         old.pop(VERSION_KEY)  # a record written before records named their version
         assert read_record(old)[key] == new[key]
         assert differing_settings(old, new, [k for k in new if k not in NOT_IDENTITY]) == []
         other = dataclasses.replace(config, **{key: dataclasses.replace(getattr(config, key), push_weight=2.0)})
         with_field = other.record()
         without = json.loads(json.dumps(with_field))
-        without[key].pop("distance")
+        for field in ("distance", "same_task"):
+            without[key].pop(field)
         assert digest_view(with_field) == digest_view(without)
         root_mean = dataclasses.replace(config, **{key: dataclasses.replace(getattr(config, key), distance="root-mean")})
         assert differing_settings(old, root_mean.record(), [key]) == [key]
         assert config_digest(root_mean) != config_digest(config)
+        by_value = dataclasses.replace(config, **{key: dataclasses.replace(getattr(config, key), same_task="value")})
+        assert differing_settings(old, by_value.record(), [key]) == [key]
+        assert config_digest(by_value) != config_digest(config)
 
 
 def test_a_record_names_its_version_which_is_not_part_of_the_runs_identity():

@@ -335,6 +335,26 @@ def _baseline_batch(seed=0):
     return batch
 
 
+def test_focal_same_task_by_value_pairs_the_contexts_of_tasks_with_equal_parameters():
+    from bati.methods.focal import FOCALConfig, metric_loss, task_labels
+
+    batch = _baseline_batch()
+    batch["task_arrays"] = jnp.array([[1.0], [-1.0], [1.0], [-1.0]])  # two directions, as HalfCheetahDir's tasks
+    np.testing.assert_array_equal(task_labels(batch), [0, 1, 0, 1])
+    for name in ("focal", "unicorn", "csro"):
+        by_index = make_method(name, SPEC)
+        by_value = make_method(name, SPEC, dataclasses.replace(by_index.config, same_task="value"))
+        params = by_index.init(jax.random.PRNGKey(0))
+        z = by_index.encoder.apply(params["encoder"], batch["context"])
+        z_positive = by_index.encoder.apply(params["encoder"], batch["positive_context"])
+        both = jnp.concatenate([z, z_positive])
+        np.testing.assert_allclose(by_value.pair_loss(params, batch, z), metric_loss(both, jnp.array([0, 1, 0, 1] * 2)),
+                                   rtol=1e-6)
+        np.testing.assert_allclose(by_index.pair_loss(params, batch, z), metric_loss(both, jnp.arange(8) % 4), rtol=1e-6)
+    with pytest.raises(ValueError, match="^focal.same_task must be one of index, value, got 'direction'$"):
+        FOCALConfig(same_task="direction").check()
+
+
 @pytest.mark.parametrize("negatives", ["same-task", "any-task"])
 def test_csro_fits_q_on_detached_latents_and_the_encoder_on_a_frozen_q(negatives):
     method = make_method("csro", SPEC, CSROConfig(club_negatives=negatives))

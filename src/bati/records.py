@@ -29,7 +29,7 @@ LATER_FIELDS = {"n_train_tasks": 20, "n_test_tasks": 20, "train_task_range": Non
                 "datasets": [], "task_key": None, "held_out": 0.2, "eval_env": None, "family_version": 1,
                 "zoo_dir": None, "eval_beside_training": False, "experts": "conditioned"}
 """Settings added after runs were recorded: a record without one had this value."""
-LATER_METHOD_FIELDS = {"distance": "squared", "latent_activation": "none"}
+LATER_METHOD_FIELDS = {"distance": "squared", "latent_activation": "none", "same_task": "index"}
 """Method hyperparameters added after runs were recorded (in every section whose Config has the field): a
 section without one had this value. (csro.club_negatives is not one: its old value is not its default.)"""
 CHANGED_METHOD_DEFAULTS = {("csro", "csro", "club_negatives"): "any-task", ("er-trl", "ertrl", "metric_weight"): 1.0,

@@ -118,6 +118,9 @@ DECLARED = (
     Study(RESULTS / "cpu/total-data/experts", "Table 3's dataset size read in total: 50 episodes per training "
           "task on HalfCheetahDir instead of 1,000", "experts", "cpu", ("episodes_per_task=50",),
           methods=("bati", "bati-r", "focal", "oracle"), families=("HalfCheetahDir",), data_root="data-total"),
+    Study(RESULTS / "cpu/same-task-value/experts", "FOCAL with tasks of equal parameters as one task in its metric "
+          "loss (HalfCheetahDir's same-direction tasks are not pushed apart)", "experts", "cpu",
+          ("focal.same_task=value",), methods=("focal",), families=("HalfCheetahDir",)),
     Study(RESULTS / "cpu/focal-distance/main", "FOCAL with the root-mean distance in its metric loss", "main", "cpu",
           ("focal.distance=root-mean",), methods=("focal",), families=("AntDir",), seeds=(0,)),
     Study(RESULTS / "cpu/tanh/main", "FOCAL with a tanh on its latent", "main", "cpu",

@@ -37,11 +37,17 @@ class FOCALConfig:
     latent_activation: Literal["none", "tanh"] = "none"
     """The context encoder's output per transition: "tanh" bounds it in [-1, 1] before the mean (the FOCAL /
     CSRO / ER-TRL code lineage's encoder); "none", unbounded (ours for FOCAL, UNICORN and CSRO: docs/methods.md)."""
+    same_task: Literal["index", "value"] = "index"
+    """Which contexts the metric loss counts as one task: those of the same training task ("index", FOCAL's), or
+    of training tasks with equal parameters ("value": HalfCheetahDir's 20 training tasks are two directions, and
+    "index" pushes apart the latents of same-direction tasks, which only their collectors tell apart)."""
 
     def check(self, section: str = "focal") -> None:
         """ValueError naming `section`.<setting> (the TrainConfig field holding these settings) for a bad value."""
         if self.distance not in DISTANCES:
             raise ValueError(f"{section}.distance must be one of {', '.join(DISTANCES)}, got {self.distance!r}")
+        if self.same_task not in SAME_TASK:
+            raise ValueError(f"{section}.same_task must be one of {', '.join(SAME_TASK)}, got {self.same_task!r}")
         if self.latent_activation not in LATENT_ACTIVATIONS:
             raise ValueError(f"{section}.latent_activation must be one of {', '.join(LATENT_ACTIVATIONS)}, "
                              f"got {self.latent_activation!r}")
@@ -54,6 +60,7 @@ class FOCALConfig:
 
 DISTANCES = ("squared", "root-mean")
 LATENT_ACTIVATIONS = ("none", "tanh")
+SAME_TASK = ("index", "value")
 PULL_EPSILON = 1e-3
 """Keeps the root-mean pull's gradient finite at coincidence (the code lineage's value)."""
 
@@ -80,6 +87,13 @@ def metric_loss(z: jax.Array, labels: jax.Array, beta: float = FOCALConfig.push_
     return pull + push
 
 
+def task_labels(batch: dict) -> jax.Array:
+    """One label per batch task that tasks with equal parameters share: the batch position of the first of them."""
+    tasks = batch["task_arrays"]
+    equal = jnp.all(tasks[:, None, :] == tasks[None, :, :], axis=-1)
+    return jnp.argmax(equal, axis=1)
+
+
 class FOCAL(TaskInference):
     Config = FOCALConfig
     config_key = "focal"
@@ -101,7 +115,8 @@ class FOCAL(TaskInference):
     def pair_loss(self, params, batch, z):
         """The metric loss of the first contexts' latents z and the positive contexts' latents."""
         z_positive = self.encoder.apply(params["encoder"], batch["positive_context"])
-        labels = jnp.concatenate([batch["task_ids"], batch["task_ids"]])
+        labels = task_labels(batch) if self.config.same_task == "value" else batch["task_ids"]
+        labels = jnp.concatenate([labels, labels])
         return metric_loss(jnp.concatenate([z, z_positive]), labels, self.config.push_weight,
                            self.config.push_epsilon, self.config.distance)
 
