@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import flax
 import jax
@@ -35,6 +36,7 @@ def trained(tmp_path_factory):
     tmp_path = tmp_path_factory.mktemp("per-task")
     return {"three": _train(tmp_path, "three", tasks=(0, 1, 2)),
             "alone": _train(tmp_path, "alone", tasks=(1,)),
+            "zero-two": _train(tmp_path, "zero-two", tasks=(2, 0)),
             "resumed": (_train(tmp_path, "resumed", tasks=(0, 1, 2), total_steps=200, start_steps=100),
                         _train(tmp_path, "resumed", tasks=(0, 1, 2), start_steps=100)),
             "straight": _train(tmp_path, "straight", tasks=(0, 1, 2), start_steps=100),
@@ -61,6 +63,37 @@ def test_resumed_per_task_training_gives_the_uninterrupted_experts(trained):
     jax.tree_util.tree_map(np.testing.assert_array_equal, resumed.actors, trained["straight"].actors)
     lines = (trained["dir"] / "resumed" / "metrics.jsonl").read_text().splitlines()
     assert len(json.loads(lines[-1])["eval_returns"]) == 3
+
+
+def test_experts_trained_in_parts_merge_into_the_experts_trained_together(trained, tmp_path):
+    from bati.cli import main
+
+    zoo = trained["dir"]
+    assert main(["experts", "merge", "--family", "PointGoal", "--parts", str(zoo / "zoo-zero-two"),
+                 str(zoo / "zoo-alone"), "--export-dir", str(tmp_path / "merged")]) == 0
+    merged = load("PointGoal", tmp_path / "merged", "per-task")
+    three = trained["three"]
+    assert merged.meta["task_indices"] == [0, 1, 2] and merged.meta["parts"] == 2
+    np.testing.assert_allclose(merged.meta["tasks"], three.meta["tasks"])
+    jax.tree_util.tree_map(np.testing.assert_array_equal, merged.actors, three.actors)
+
+
+def test_a_merge_of_overlapping_or_unlike_parts_is_refused_before_writing(trained, tmp_path, capsys):
+    from bati.cli import main
+
+    zoo = trained["dir"]
+    base = ["experts", "merge", "--family", "PointGoal", "--export-dir", str(tmp_path / "merged"), "--parts"]
+    assert main(base + [str(zoo / "zoo-three"), str(zoo / "zoo-alone")]) == 2
+    assert "training task(s) [1] are in more than one part" in capsys.readouterr().err
+    other_seed = tmp_path / "other-seed"
+    shutil.copytree(zoo / "zoo-zero-two", other_seed)
+    meta_path = other_seed / "PointGoal" / PER_TASK_DIR / "expert.json"
+    meta_path.write_text(json.dumps({**json.loads(meta_path.read_text()), "seed": 1}))
+    assert main(base + [str(zoo / "zoo-alone"), str(other_seed)]) == 2
+    assert "has seed=1" in capsys.readouterr().err
+    assert not (tmp_path / "merged").exists()
+    assert main(["experts", "merge", "--family", "PointGoal", "--parts", str(zoo / "zoo-alone")]) == 2
+    assert "--export-dir or --into-package" in capsys.readouterr().err
 
 
 def test_export_holds_the_tasks_and_actors_only(trained):

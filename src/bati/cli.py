@@ -21,6 +21,7 @@ from bati.data.show import (
     show_collection,
     verify_and_show,
 )
+from bati.envs import get_family
 from bati.envs.listing import show_families
 from bati.errors import BatiWarning, PartialFailure
 from bati.experiments.claims import write_and_show_claims
@@ -30,7 +31,9 @@ from bati.experiments.main_job import MainJob, run_and_show_main_job
 from bati.experiments.probes import show_likelihood_split
 from bati.experiments.sweep import SweepJob, sweep_and_show
 from bati.experts.card import write_card
+from bati.experts.per_task import merge_per_task_experts
 from bati.experts.train import ExpertTrainConfig, train_and_export
+from bati.experts.zoo import ZOO_DIR
 from bati.inference import infer_context
 from bati.io import git_commit
 from bati.processes import TERMINATED_EXIT_CODE, Terminated, sigterm_as_interrupt
@@ -84,6 +87,29 @@ class ExpertsCard:
         console.print(card["summary"])
 
 
+@dataclass
+class ExpertsMerge:
+    """Join per-task experts trained in parts (`bati experts train --per-task --tasks ...`) into one export:
+    the experts one program training every part's tasks would give."""
+
+    family: str
+    parts: tuple[Path, ...]
+    """The parts' zoo directories (each holds <family>/per-task/, e.g. runs/experts/F-per-task/zoo)."""
+    export_dir: Path | None = None
+    """Zoo directory to write the merged experts into, as <export_dir>/<family>/per-task/."""
+    into_package: bool = False
+    """Write them into the package's own zoo instead (what later per-task collections of the family use)."""
+
+    def run(self) -> None:
+        if self.into_package == (self.export_dir is not None):
+            raise ValueError("give either --export-dir or --into-package")
+        family = get_family(self.family)
+        zoo = ZOO_DIR if self.into_package else self.export_dir
+        meta = merge_per_task_experts(family, list(self.parts), zoo, package=self.into_package)
+        console.print(f"{len(meta['task_indices'])} per-task experts of {self.family} (tasks {meta['task_indices']}, "
+                      f"{meta['parts']} parts) written to {zoo}", soft_wrap=True)
+
+
 def group(**commands):
     """A dataclass type whose single field selects one of `commands` (nested subcommands)."""
     options = tuple(Annotated[cls, tyro.conf.subcommand(name)] for name, cls in commands.items())
@@ -94,7 +120,7 @@ def group(**commands):
 class Experts:
     """Expert (context-collection) policies."""
 
-    command: group(train=ExpertsTrain, card=ExpertsCard)
+    command: group(train=ExpertsTrain, merge=ExpertsMerge, card=ExpertsCard)
 
     def run(self) -> None:
         self.command.run()

@@ -189,6 +189,49 @@ def save_per_task_experts(directory: Path, family_name: str, actors, meta: dict)
     atomic_write_json(directory / "expert.json", {"family": family_name, **meta})
 
 
+MERGE_IDENTITY = ("family", "kind", "family_version", "obs_dim", "action_dim", "hidden_dims", "split_seed", "seed",
+                  "train_steps_per_task")
+"""What the parts of one export must share: the same family, env version, networks, seed and budget."""
+
+
+def merge_per_task_experts(family: TaskFamily, parts: list[Path], zoo_dir: Path, package: bool = False) -> dict:
+    """Join per-task experts trained in parts (`--tasks`, e.g. on different days; each part a zoo directory
+    holding `<Family>/per-task/`) into one export in `zoo_dir`, ordered by task index: since a task's experts do not depend on the tasks trained beside
+    it, the merge holds the parameters one program training every part's tasks would give (tested).
+    Parts must share MERGE_IDENTITY and hold disjoint tasks; ValueError (one line) before anything is
+    written otherwise. `package`: `zoo_dir` is the package's own zoo (`--into-package`). Returns the merged meta."""
+    if not parts:
+        raise ValueError("give at least one part to merge")
+    loaded = [load_per_task(family, Path(part) / family.name / PER_TASK_DIR) for part in parts]
+    first = loaded[0].meta
+    for part, experts in zip(parts, loaded):
+        for name in MERGE_IDENTITY:
+            if experts.meta.get(name) != first.get(name):
+                raise ValueError(f"{part} has {name}={experts.meta.get(name)!r}, {parts[0]} has {first.get(name)!r}: "
+                                 "the parts of one export must be trained with the same settings")
+    indices = [i for experts in loaded for i in experts.meta["task_indices"]]
+    repeated = sorted({i for i in indices if indices.count(i) > 1})
+    if repeated:
+        raise ValueError(f"training task(s) {repeated} are in more than one part: give each task's experts once")
+    all_tasks = training_tasks(family, first["split_seed"])
+    tasks = [experts.meta["tasks"][k] for experts in loaded for k in range(len(experts.meta["tasks"]))]
+    for i, task in zip(indices, tasks):
+        if not np.allclose(task, family.task_to_array(all_tasks[i]), atol=1e-6):
+            raise ValueError(f"task {i} of the parts is not training task {i} of data seed {first['split_seed']}")
+    order = np.argsort(indices, kind="stable")
+    actors = jax.tree_util.tree_map(lambda *xs: np.concatenate([np.asarray(x) for x in xs])[order],
+                                    *[experts.actors for experts in loaded])
+    finals = [r for experts in loaded for r in (experts.meta.get("final_eval_returns") or [None] * len(
+        experts.meta["tasks"]))]
+    meta = {**{k: v for k, v in first.items() if k != "family"},
+            "task_indices": [indices[k] for k in order], "tasks": [tasks[k] for k in order],
+            "train_wall_time_s": round(sum(experts.meta.get("train_wall_time_s", 0.0) for experts in loaded), 1),
+            "final_eval_returns": [finals[k] for k in order], "parts": len(loaded)}
+    check_directory(zoo_dir / family.name / PER_TASK_DIR, "the zoo directory", package=package)
+    save_per_task_experts(zoo_dir / family.name / PER_TASK_DIR, family.name, actors, meta)
+    return meta
+
+
 def _save_checkpoint(out: Path, state, keys, rngs, episode: int, buffers: TaskBuffers, wall_time: float) -> None:
     """One file holds the whole training state, so a crash can't leave a mixed checkpoint."""
     meta = {"episode": episode, "keys": np.asarray(keys).tolist(), "rngs": [r.bit_generator.state for r in rngs],
