@@ -444,6 +444,12 @@ CASES = [
     Case("experts train --export-dir is a file", lambda e: ["experts", "train", "--family", FAMILY, "--export-dir",
                                                              e.tmp / "a_file", "--out-dir", e.tmp / "expert"], 2,
          ("the zoo directory", "a_file is a file")),
+    Case("experts merge: a part without experts", lambda e: ["experts", "merge", "--family", FAMILY, "--parts",
+                                                              e.tmp / "nope", "--export-dir", e.tmp / "zoo"], 2,
+         ("no per-task experts for PointGoal in", "--per-task")),
+    Case("experts merge --export-dir is a file", lambda e: ["experts", "merge", "--family", FAMILY, "--parts",
+                                                             e.tmp / "nope", "--export-dir", e.tmp / "a_file"], 2,
+         ("the zoo directory", "a_file is a file")),
     # --- paths and the OS
     Case("out-dir is a file", lambda e: [*TRAIN, "--data-root", e.data, "--out-dir", e.tmp / "a_file"], 2,
          ("the run directory", "a_file is a file")),

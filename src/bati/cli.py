@@ -102,7 +102,7 @@ class ExpertsMerge:
 
     def run(self) -> None:
         if self.into_package == (self.export_dir is not None):
-            raise ValueError("give either --export-dir or --into-package")
+            raise ValueError("give either --export-dir or --into-package (where the merged experts go)")
         family = get_family(self.family)
         zoo = ZOO_DIR if self.into_package else self.export_dir
         meta = merge_per_task_experts(family, list(self.parts), zoo, package=self.into_package)

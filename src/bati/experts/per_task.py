@@ -202,6 +202,8 @@ def merge_per_task_experts(family: TaskFamily, parts: list[Path], zoo_dir: Path,
     written otherwise. `package`: `zoo_dir` is the package's own zoo (`--into-package`). Returns the merged meta."""
     if not parts:
         raise ValueError("give at least one part to merge")
+    target = zoo_dir / family.name / PER_TASK_DIR
+    check_directory(target, "the zoo directory", package=package)
     loaded = [load_per_task(family, Path(part) / family.name / PER_TASK_DIR) for part in parts]
     first = loaded[0].meta
     for part, experts in zip(parts, loaded):
@@ -227,8 +229,7 @@ def merge_per_task_experts(family: TaskFamily, parts: list[Path], zoo_dir: Path,
             "task_indices": [indices[k] for k in order], "tasks": [tasks[k] for k in order],
             "train_wall_time_s": round(sum(experts.meta.get("train_wall_time_s", 0.0) for experts in loaded), 1),
             "final_eval_returns": [finals[k] for k in order], "parts": len(loaded)}
-    check_directory(zoo_dir / family.name / PER_TASK_DIR, "the zoo directory", package=package)
-    save_per_task_experts(zoo_dir / family.name / PER_TASK_DIR, family.name, actors, meta)
+    save_per_task_experts(target, family.name, actors, meta)
     return meta
 
 
