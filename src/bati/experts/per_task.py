@@ -196,10 +196,10 @@ MERGE_IDENTITY = ("family", "kind", "family_version", "obs_dim", "action_dim", "
 
 def merge_per_task_experts(family: TaskFamily, parts: list[Path], zoo_dir: Path, package: bool = False) -> dict:
     """Join per-task experts trained in parts (`--tasks`, e.g. on different days; each part a zoo directory
-    holding `<Family>/per-task/`) into one export in `zoo_dir`, ordered by task index: since a task's experts do not depend on the tasks trained beside
-    it, the merge holds the parameters one program training every part's tasks would give (tested).
-    Parts must share MERGE_IDENTITY and hold disjoint tasks; ValueError (one line) before anything is
-    written otherwise. `package`: `zoo_dir` is the package's own zoo (`--into-package`). Returns the merged meta."""
+    holding `<Family>/per-task/`) into one export in `zoo_dir`, ordered by task index. A task's expert does not
+    depend on the tasks trained beside it, so the merge holds what one program training every part's tasks
+    gives (tested). Parts must share MERGE_IDENTITY and hold disjoint tasks; ValueError (one line) before
+    anything is written otherwise. `package`: `zoo_dir` is the package's own zoo. Returns the merged meta."""
     if not parts:
         raise ValueError("give at least one part to merge")
     target = zoo_dir / family.name / PER_TASK_DIR
@@ -216,15 +216,15 @@ def merge_per_task_experts(family: TaskFamily, parts: list[Path], zoo_dir: Path,
     if repeated:
         raise ValueError(f"training task(s) {repeated} are in more than one part: give each task's experts once")
     all_tasks = training_tasks(family, first["split_seed"])
-    tasks = [experts.meta["tasks"][k] for experts in loaded for k in range(len(experts.meta["tasks"]))]
+    tasks = [task for experts in loaded for task in experts.meta["tasks"]]
     for i, task in zip(indices, tasks):
         if not np.allclose(task, family.task_to_array(all_tasks[i]), atol=1e-6):
             raise ValueError(f"task {i} of the parts is not training task {i} of data seed {first['split_seed']}")
     order = np.argsort(indices, kind="stable")
     actors = jax.tree_util.tree_map(lambda *xs: np.concatenate([np.asarray(x) for x in xs])[order],
                                     *[experts.actors for experts in loaded])
-    finals = [r for experts in loaded for r in (experts.meta.get("final_eval_returns") or [None] * len(
-        experts.meta["tasks"]))]
+    finals = [r for experts in loaded
+              for r in experts.meta.get("final_eval_returns") or [None] * len(experts.meta["tasks"])]
     meta = {**{k: v for k, v in first.items() if k != "family"},
             "task_indices": [indices[k] for k in order], "tasks": [tasks[k] for k in order],
             "train_wall_time_s": round(sum(experts.meta.get("train_wall_time_s", 0.0) for experts in loaded), 1),
