@@ -57,6 +57,23 @@ def test_each_task_trained_beside_others_gets_the_parameters_it_gets_alone(train
                            _actor(three, 1)["params"]["Dense_0"]["kernel"])
 
 
+def test_a_tasks_evaluation_episode_is_seeded_by_its_index_not_its_place_in_the_part(monkeypatch):
+    from collections import namedtuple
+
+    from bati.experts import per_task
+
+    Episodes = namedtuple("Episodes", "returns")
+    seeds = []
+
+    def fake_rollout(family, tasks, act, noise, seed):
+        seeds.append(seed)
+        return Episodes(np.zeros(len(tasks)))
+
+    monkeypatch.setattr(per_task, "rollout", fake_rollout)
+    per_task.evaluate_per_task(None, None, get_family("PointGoal"), ["a", "b"], [5, 7], seed=100)
+    assert seeds == [[105, 107]]  # the full program's reset seeds for training tasks 5 and 7
+
+
 def test_resumed_per_task_training_gives_the_uninterrupted_experts(trained):
     first, resumed = trained["resumed"]
     assert first.meta["train_steps_per_task"] == 200 and resumed.meta["train_steps_per_task"] == 400

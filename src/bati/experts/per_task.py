@@ -158,7 +158,7 @@ def train_per_task_experts(run, show_progress: bool = True) -> Path:
             progress.update(bar, completed=min(steps, config.total_steps))
             crossed = lambda every: steps // every > (steps - length) // every  # noqa: E731
             if crossed(config.eval_every) or steps >= config.total_steps:
-                returns = evaluate_per_task(learner, state.actor.params, family, tasks)
+                returns = evaluate_per_task(learner, state.actor.params, family, tasks, indices)
                 append_jsonl(out / "metrics.jsonl", {
                     "steps": steps, "episode": episode, "wall_time": time.perf_counter() - start,
                     **{k: float(np.mean(v)) for k, v in metrics.items()},
@@ -177,10 +177,13 @@ def train_per_task_experts(run, show_progress: bool = True) -> Path:
     return out
 
 
-def evaluate_per_task(learner: PerTaskSAC, actors, family: TaskFamily, tasks: list, seed: int = 12345) -> np.ndarray:
-    """Each expert's deterministic return (eps = 0) on its own task: (n_tasks,)."""
+def evaluate_per_task(learner: PerTaskSAC, actors, family: TaskFamily, tasks: list, indices: list[int],
+                      seed: int = 12345) -> np.ndarray:
+    """Each expert's deterministic return (eps = 0) on its own task: (n_tasks,). Training task i's episode is
+    reset with seed + i, so a part (`--tasks`) logs the returns the full program logs for its tasks."""
     keys = jnp.zeros((len(tasks), 2), jnp.uint32)
-    episodes = rollout(family, tasks, lambda o, _: learner.act(actors, o, keys, deterministic=True), noise=0.0, seed=seed)
+    episodes = rollout(family, tasks, lambda o, _: learner.act(actors, o, keys, deterministic=True), noise=0.0,
+                       seed=[seed + i for i in indices])
     return np.asarray(episodes.returns)
 
 
