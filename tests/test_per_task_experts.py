@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import shutil
 
-import flax
 import jax
 import numpy as np
 import pytest
@@ -234,5 +233,18 @@ def test_all_tasks_experts_collect_a_loadable_collection_and_have_a_card(trained
         load_family_data("PointGoal", "quick", root=tmp_path)
     card = write_card("PointGoal", zoo_dir=zoo, experts="per-task")
     assert card["experts"] == "per-task" and len(card["train_returns"]) == 20
-    assert (zoo / "PointGoal" / PER_TASK_DIR / "card.md").is_file()
+    assert "all 20 trained as one program in" in (zoo / "PointGoal" / PER_TASK_DIR / "card.md").read_text()
     assert not (zoo / "PointGoal" / "card.md").exists()
+
+
+def test_the_card_of_merged_experts_says_how_many_programs_trained_them(trained, tmp_path):
+    from bati.experts.card import write_card
+
+    zoo = tmp_path / "zoo"
+    shutil.copytree(trained["dir"] / "zoo-all", zoo)
+    meta_path = zoo / "PointGoal" / PER_TASK_DIR / "expert.json"
+    meta_path.write_text(json.dumps({**json.loads(meta_path.read_text()), "parts": 4, "train_wall_time_s": 150.0}))
+    card = write_card("PointGoal", zoo_dir=zoo, experts="per-task")
+    assert card["train_parts"] == 4
+    text = (zoo / "PointGoal" / PER_TASK_DIR / "card.md").read_text()
+    assert "all 20 trained in 4 programs (`bati experts merge` joined them), in all 2.5 min" in text

@@ -27,9 +27,9 @@ def expert_episodes(expert: Expert, env_tasks, policy_tasks, noise, seed, collec
     task_arrays = np.stack([family.task_to_array(t) for t in policy_tasks])
     key = jax.random.PRNGKey(seed)
     if collectors is None:
-        act = lambda obs, _: expert.act_from_arrays(obs, task_arrays, True, key)  # noqa: E731
+        act = lambda obs, _: expert.act_from_arrays(obs, task_arrays, True, key)
     else:
-        act = lambda obs, _: expert.act_for_collectors(obs, np.asarray(collectors), task_arrays, True, key)  # noqa: E731
+        act = lambda obs, _: expert.act_for_collectors(obs, np.asarray(collectors), task_arrays, True, key)
     return rollout(family, env_tasks, act, noise=noise, seed=seed)
 
 
@@ -66,6 +66,7 @@ def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = Non
         "eval_noise": noise,
         "train_steps": expert.meta.get("train_steps", expert.meta.get("train_steps_per_task")),
         "train_wall_time_s": expert.meta["train_wall_time_s"],
+        "train_parts": expert.meta.get("parts", 1),
         "train_tasks": train,
         "test_tasks": test,
         "train_returns": own.returns[: len(train)].tolist(),
@@ -110,8 +111,11 @@ def _markdown(card: dict) -> str:
         for i, (task, ret, free) in enumerate(zip(tasks, rets, frees))
     )
     per_task = card.get("experts") == "per-task"
+    parts = card.get("train_parts", 1)
+    how = ("as one program in" if parts == 1
+           else f"in {parts} programs (`bati experts merge` joined them), in all")
     what = (f"One SAC per training task (App. C.2), {card['train_steps']:,} environment transitions each, all "
-            f"{len(card['train_tasks'])} trained as one program in {card['train_wall_time_s'] / 60:.1f} min"
+            f"{len(card['train_tasks'])} trained {how} {card['train_wall_time_s'] / 60:.1f} min"
             if per_task else f"Task-conditioned SAC, {card['train_steps']:,} environment transitions, "
             f"{card['train_wall_time_s'] / 60:.1f} min of training")
     flag = " --experts per-task" if per_task else ""
