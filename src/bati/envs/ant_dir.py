@@ -28,7 +28,7 @@ class AntDirFamily(TaskFamily):
         parameter_range=(0.0, 2 * math.pi),
         paper_episodes=500,  # Table 3: 1e5 transitions per task
         expert_steps=600_000,
-        per_task_expert_steps=200_000,  # ~70 min per five tasks on 2 CPU cores; shipped, trained in 4 parts (docs/experts.md)
+        per_task_expert_steps=200_000,  # shipped: 4 parts of 5 tasks, ~70 min each on 2 CPU cores
         club_weight=5.0,
     )
 
