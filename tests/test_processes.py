@@ -123,3 +123,36 @@ def test_a_sigterm_lost_inside_a_finaliser_still_ends_the_process():
     assert done.stderr.strip().splitlines()[-1] == \
         "error: terminated, and still running 1 s later: exiting now; run the same command again to resume"
     assert time.perf_counter() - start < 30
+
+
+# Reports progress for 1.5 s under a 0.5 s watchdog, then stalls in wait_forever.
+STALLING = """
+import time
+from bati.processes import stall_watchdog
+
+def wait_forever():
+    time.sleep(60)
+
+with stall_watchdog(0.5) as alive:
+    for _ in range(10):
+        time.sleep(0.15)
+        alive()
+    print("progressed", flush=True)
+    wait_forever()
+"""
+
+
+def test_stall_watchdog_ends_a_stalled_loop_with_its_stacks():
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", STALLING], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1
+    assert done.stdout == "progressed\n"  # alive() kept it going past the timeout
+    assert "Timeout (0:00:00.500000)!" in done.stderr and "wait_forever" in done.stderr
+    assert time.monotonic() - started < 30
+
+
+def test_stall_watchdog_is_off_after_its_body():
+    script = ("import time\nfrom bati.processes import stall_watchdog\n"
+              "with stall_watchdog(0.3):\n    pass\ntime.sleep(1.0)\nprint('done')")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert (done.returncode, done.stdout, done.stderr) == (0, "done\n", "")

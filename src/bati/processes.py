@@ -1,8 +1,10 @@
-"""The one process pool of bati: data collection's rollout workers and a sweep's local jobs; and SIGTERM
-turned into an interrupt, so that a terminated command cleans up as after Ctrl-C."""
+"""The one process pool of bati: data collection's rollout workers and a sweep's local jobs; SIGTERM
+turned into an interrupt, so that a terminated command cleans up as after Ctrl-C; and a watchdog that ends
+a training loop which has stopped making progress."""
 
 from __future__ import annotations
 
+import faulthandler
 import multiprocessing
 import os
 import signal
@@ -20,6 +22,10 @@ class Terminated(KeyboardInterrupt):
 
 
 TERMINATED_EXIT_CODE = 128 + signal.SIGTERM
+
+STALL_SECONDS = 1800.0
+"""A training loop that reports no progress (a logged chunk, an episode, a finished evaluation) for this long
+is taken to hang: the longest gap between two reports, a paper-scale compilation or evaluation, is minutes."""
 
 
 def _exit_unless_handled(handled: threading.Event, grace_s: float) -> None:
@@ -90,3 +96,24 @@ def spawned_pool(workers: int, initializer: Callable | None = None, initargs: tu
                 if process.is_alive():
                     process.terminate()
         executor.shutdown(wait=True, cancel_futures=True)
+
+
+@contextmanager
+def stall_watchdog(seconds: float = STALL_SECONDS) -> Iterator[Callable[[], None]]:
+    """Within the body, a process whose loop has not called the yielded `alive()` for `seconds` prints every
+    thread's stack to stderr (after a line "Timeout (h:mm:ss)!") and exits with code 1.
+
+    A process can wait forever at 0% CPU with no error (JAX's CPU backend, on rare occasions, never delivers
+    a result: jax-ml/jax#25861); a chained script would wait with it for the rest of a session. The timer is
+    faulthandler's, a C thread that needs no GIL, so it fires whatever the waiting thread holds. Stopping there
+    is safe: what a run writes is atomic, and the same command resumes it from its last checkpoint."""
+    stream = sys.__stderr__  # the real one: a progress bar swaps sys.stderr for a proxy without a file descriptor
+
+    def alive() -> None:
+        faulthandler.dump_traceback_later(seconds, repeat=False, file=stream, exit=True)
+
+    alive()
+    try:
+        yield alive
+    finally:
+        faulthandler.cancel_dump_traceback_later()

@@ -32,6 +32,7 @@ from bati.envs import TaskFamily
 from bati.evaluate import Evaluator, OfflineEvaluator, reference_returns
 from bati.evaluations import EvaluatedBeside, RunEvaluations
 from bati.io import append_jsonl, atomic_write_bytes, atomic_write_json, atomic_write_text, code_record
+from bati.processes import stall_watchdog
 from bati.run_dir import (
     RunInputs,
     TrainingError,
@@ -145,15 +146,20 @@ def _train_claimed(resolved: list[ResolvedRun], companions: list[list[ResolvedRu
         BarColumn(), TextColumn("{task.completed:,}/{task.total:,}"), TextColumn("{task.fields[status]}"),
         TimeElapsedColumn(), TimeRemainingColumn(), disable=not show_progress,
     )
-    with progress:
+    with progress, stall_watchdog() as alive:
         bar = progress.add_task("train", total=config.steps, completed=min(r.step for r in runs), status="")
+
+        def report(**fields) -> None:
+            progress.update(bar, **fields)
+            alive()
+
         try:
             while (behind := min(r.step for r in runs)) < config.steps:  # the runs behind first, alone
                 group = [r for r in runs if r.step == behind]
                 until = min([r.step for r in runs if r.step > behind] + [config.steps])
-                evaluations = RunEvaluations(evaluator, group, modes, lambda line: progress.update(bar, status=line))
+                evaluations = RunEvaluations(evaluator, group, modes, lambda line: report(status=line))
                 _train_together(trainer, evaluations, data, group, until, start,
-                                on_step=lambda step: progress.update(bar, completed=step))
+                                on_step=lambda step: report(completed=step))
         finally:
             for evaluator_of_mode in [*modes.values(), evaluator]:  # the modes share the evaluator's envs
                 evaluator_of_mode.close()

@@ -28,8 +28,15 @@ from bati.envs import TaskFamily
 from bati.envs.rollout import LockstepEnvs, rollout
 from bati.experts.base import Expert
 from bati.experts.sac import RESUME_IDENTITY, SAC, SACConfig, generator_from_state
-from bati.io import append_jsonl, atomic_save_npz, atomic_write_bytes, atomic_write_json, check_directory, \
-    check_run_config
+from bati.io import (
+    append_jsonl,
+    atomic_save_npz,
+    atomic_write_bytes,
+    atomic_write_json,
+    check_directory,
+    check_run_config,
+)
+from bati.processes import stall_watchdog
 
 PER_TASK_DIR = "per-task"
 """Sub-directory of a family's zoo entry that holds its per-task experts."""
@@ -135,7 +142,7 @@ def train_per_task_experts(run, show_progress: bool = True) -> Path:
     start = time.perf_counter() - wall_time
     envs = LockstepEnvs(family, noise=0.0)
     metrics, returns = {}, None
-    with progress, envs:
+    with progress, envs, stall_watchdog() as alive:
         bar = progress.add_task("train", total=config.total_steps, completed=buffers.size, status="")
         while buffers.size < config.total_steps:
             obs = envs.reset(tasks, [config.seed * 1_000_003 + i * 100_003 + episode for i in indices])
@@ -156,6 +163,7 @@ def train_per_task_experts(run, show_progress: bool = True) -> Path:
             episode += 1
             steps = buffers.size
             progress.update(bar, completed=min(steps, config.total_steps))
+            alive()
             crossed = lambda every: steps // every > (steps - length) // every  # noqa: E731
             if crossed(config.eval_every) or steps >= config.total_steps:
                 returns = evaluate_per_task(learner, state.actor.params, family, tasks, indices)

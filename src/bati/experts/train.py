@@ -30,6 +30,7 @@ from bati.experts.sac import (
 )
 from bati.experts.zoo import save_expert
 from bati.io import append_jsonl, atomic_save_npz, check_directory, check_run_config
+from bati.processes import stall_watchdog
 
 MAX_UPDATES_PER_STEP = 1_000.0
 """More SAC updates per transition than this is a typo, not a plan (the default is 0.5)."""
@@ -189,7 +190,7 @@ def train_resolved(run: ResolvedExperts, show_progress: bool = True) -> Path:
     )
     start = time.perf_counter() - wall_time
     last_eval = None
-    with progress, envs:
+    with progress, envs, stall_watchdog() as alive:
         bar = progress.add_task("train", total=config.total_steps, completed=steps, status="")
         while steps < config.total_steps:
             tasks = family.sample_tasks(config.num_envs, rng)
@@ -215,6 +216,7 @@ def train_resolved(run: ResolvedExperts, show_progress: bool = True) -> Path:
                     state, metrics = sac.update_many(state, batches, update_key)
             episode += 1
             progress.update(bar, completed=min(steps, config.total_steps))
+            alive()
             crossed = lambda every: steps // every > (steps - config.num_envs * family.record.episode_length) // every
             if crossed(config.eval_every) or steps >= config.total_steps:
                 last_eval = evaluate_expert(sac, state.actor.params, family, config.eval_tasks, seed=12345)
