@@ -199,8 +199,9 @@ def test_a_compared_cell_still_rising_over_its_scored_window_is_named_beside_the
     findings = decide(tmp_path)
     c2 = next(f for f in findings if f.claim.name == "C2" and f.source is CPU)
     assert c2.flat == 1 and c2.moving == [("focal on AntDir rising", "+0.40 [+0.40, +0.40]")]
-    assert claims_module.converged_text(c2, short=True) == "no: 1 of 2 cells still moving (focal on AntDir rising)"
-    assert "still moving: focal on AntDir rising" in claims_module.every_scale(findings, c2.claim)
+    assert claims_module.converged_text(c2, short=True) == "no: 1 of 2 cells still moving"
+    assert "still moving: focal on AntDir rising (+0.40" in claims_module.converged_text(c2)  # the section names it
+    assert "; 1 cell still moving)" in claims_module.every_scale(findings, c2.claim)
     c3 = next(f for f in findings if f.claim.name == "C3")  # compares BATI with Recon only, which has no run:
     assert c3.families == [] and c3.moving == [] and claims_module.converged_text(c3, short=True) == "-"
 

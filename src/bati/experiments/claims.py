@@ -11,8 +11,9 @@ where the runs record the references (the MuJoCo families and Kuhn poker), else 
 Verdicts: `reproduced` (every interval decides for the paper, on every family the claim names), `partly`
 (some do, or all do on only some of the families), `not reproduced` (none does: the intervals include chance or
 decide against it), `not tested`. The page's table gives the verdict at every tested scale beside the largest's,
-and whether the cells a claim compares are converged there: a cell whose p_test still drifts over its scored
-window (bati.report.convergence) is named, since a verdict that rests on it may change with more steps.
+and whether the cells a claim compares are converged there (how many still move); the claim's section names
+each cell whose p_test still drifts over its scored window (bati.report.convergence), since a verdict that rests
+on it may change with more steps.
 """
 
 from __future__ import annotations
@@ -504,8 +505,9 @@ def every_scale(findings: list[Finding], claim: Claim) -> str:
         thin = f"fewer than {MIN_SEEDS} seeds: {', '.join(finding.thin)}" if finding.thin else ""
         return "; ".join(part for part in (text, thin) if part)
 
-    def moving(finding: Finding) -> str:
-        return f"; still moving: {', '.join(cell for cell, _ in finding.moving)}" if finding.moving else ""
+    def moving(finding: Finding) -> str:  # which cells: the claim's section below
+        count = len(finding.moving)
+        return f"; {count} cell{'s' if count > 1 else ''} still moving" if count else ""
 
     return "; ".join(f"{_scale_name(f)}: {f.verdict} ({coverage(f)}{moving(f)})"
                      for f in _tested(findings, claim)) or "-"
@@ -519,8 +521,8 @@ def converged_text(finding: Finding, short: bool = False) -> str:
     if not finding.moving:
         plural = "s" if cells > 1 else ""
         return f"yes ({cells} of {cells} cell{plural} flat)" if short else f"yes: {cells} compared cell{plural}, flat"
-    if short:
-        return f"no: {len(finding.moving)} of {cells} cells still moving ({', '.join(c for c, _ in finding.moving)})"
+    if short:  # the summary row; the claim's section names the cells
+        return f"no: {len(finding.moving)} of {cells} cells still moving"
     moving = "; ".join(f"{cell} ({drift})" for cell, drift in finding.moving)
     return f"no: {finding.flat} of {cells} compared cells flat; still moving: {moving}"
 

@@ -117,7 +117,8 @@ DECLARED = (
           out_dir=RESULTS / "cpu/experiments"),
     Study(RESULTS / "cpu/total-data/experts", "Table 3's dataset size read in total: 50 episodes per training "
           "task on HalfCheetahDir instead of 1,000", "experts", "cpu", ("episodes_per_task=50",),
-          methods=("bati", "bati-r", "focal", "oracle"), families=("HalfCheetahDir",), data_root="data-total"),
+          methods=("bati", "bati-r", "focal", "csro", "unicorn", "recon", "oracle"), families=("HalfCheetahDir",),
+          data_root="data-total"),
     Study(RESULTS / "cpu/same-task-value/experts", "FOCAL with tasks of equal parameters as one task in its metric "
           "loss (HalfCheetahDir's same-direction tasks are not pushed apart)", "experts", "cpu",
           ("focal.same_task=value",), methods=("focal",), families=("HalfCheetahDir",)),
