@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import threading
 from pathlib import Path
@@ -18,6 +19,7 @@ import bati.run_dir as run_dir_module
 import bati.train as train_module
 from bati.config import TrainConfig, family_of
 from bati.data import Collection
+from bati.device import machine_record
 from bati.envs import FAMILY_NAMES, get_family
 from bati.evaluate import Evaluator
 from bati.experts import load as load_expert
@@ -353,8 +355,15 @@ def test_run_results_record_the_device_and_references(tmp_path, point_data):
     assert summary["config"]["steps"] == 5 and summary["config"]["method"] == "bati"
     references = summary["reference_returns"]
     assert references["expert"] > references["random"]  # the PointGoal expert reaches its goals
-    assert "device" in json.loads((tmp_path / "run" / "config.json").read_text())["runtime"]
+    runtime = json.loads((tmp_path / "run" / "config.json").read_text())["runtime"]
+    assert "device" in runtime and summary["cpu_cores"] == runtime["cpu_cores"] >= 1  # the cores it could use
     assert summary["data"]["fingerprint"] == point_data.fingerprint()  # the numbers it trained on
+
+
+def test_the_cores_recorded_are_those_the_process_may_use(monkeypatch):
+    """`taskset -c 1` on a 2-core machine: the run used one core, and its numbers are one core's."""
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {1}, raising=False)
+    assert machine_record()["cpu_cores"] == 1
 
 
 def test_no_context_trains_iql_without_a_latent(tmp_path, point_data):

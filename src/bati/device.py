@@ -8,7 +8,7 @@ from pathlib import Path
 
 import jax
 
-__all__ = ["cpu_model", "describe_device"]
+__all__ = ["cpu_model", "describe_device", "machine_record", "usable_cores"]
 
 
 def describe_device() -> str:
@@ -19,6 +19,21 @@ def describe_device() -> str:
     first = devices[0]
     kind = first.device_kind if first.platform != "cpu" else f"{os.cpu_count()}-core {cpu_model()} ({platform.machine()})"
     return f"{first.platform}: {kind} x{len(devices)}"
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on: its affinity, which `taskset` narrows. XLA splits a CPU
+    computation over them, and with them the order of its sums: one machine gives other numbers on one core
+    than on two (docs/reliability.md)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity outside Linux
+        return os.cpu_count() or 1
+
+
+def machine_record() -> dict:
+    """What a run's records say of its machine: the device, the cores it could use, JAX's version."""
+    return {"device": describe_device(), "cpu_cores": usable_cores(), "jax_version": jax.__version__}
 
 
 def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:

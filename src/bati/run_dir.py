@@ -22,7 +22,7 @@ from bati.checkpoints import CHECKPOINT_NAME, load_checkpoint
 from bati.config import NOT_IDENTITY, ResolvedRun, TrainConfig, differing_settings
 from bati.data import FamilyData
 from bati.data.own import load_own_data
-from bati.device import describe_device
+from bati.device import machine_record
 from bati.errors import BatiError
 from bati.experts.zoo import load_for as load_expert
 from bati.io import (
@@ -304,7 +304,7 @@ def _check_run_dir(out: Path, run: ResolvedRun) -> None:
     """A run directory belongs to one resolved config: refuse to resume a run that differs in any setting."""
     current = run.record()
     identity = tuple(k for k in current if k not in NOT_IDENTITY)
-    runtime = {"device": describe_device(), "jax_version": jax.__version__, **code_record()}
+    runtime = {**machine_record(), **code_record()}
     check_run_config(out / "config.json", {**current, "runtime": runtime}, identity, differing_settings)
 
 

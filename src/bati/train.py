@@ -27,7 +27,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from bati.checkpoints import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
 from bati.config import ResolvedRun, TrainConfig
 from bati.data import FamilyData
-from bati.device import describe_device
+from bati.device import machine_record
 from bati.envs import TaskFamily
 from bati.evaluate import Evaluator, OfflineEvaluator, reference_returns
 from bati.evaluations import EvaluatedBeside, RunEvaluations
@@ -226,7 +226,7 @@ def _log_metrics(runs: list[SeedRun], step: int, metrics: dict, wall_time: float
 
 def _write_summaries(runs: list[SeedRun], data: FamilyData, references: dict | None, wall_time: float) -> list[dict]:
     """Each run's eval.json (and its companions', which take the run's logs and checkpoint as theirs)."""
-    session = {"device": describe_device(), "jax_version": jax.__version__, **code_record(), "wall_time_s": wall_time}
+    session = {**machine_record(), **code_record(), "wall_time_s": wall_time}
     recorded = {k: data.manifest[k] for k in ("n_episodes", "n_context_episodes", "transitions", "transitions_read",
                                               "tasks") if k in data.manifest}
     if not runs[0].config.datasets:  # own data is fingerprinted by its files (data.manifest["fingerprint"])
