@@ -518,3 +518,21 @@ def test_intervals_are_rliables_own(shapes):
         reference(x, lambda s: np.array([metrics.aggregate_mean(s)])), abs=1e-12)
     assert improvement_interval(x, y, reps=300, seed=3) == pytest.approx(
         reference([x, y], lambda a, b: np.array([metrics.probability_of_improvement(a, b)])), abs=1e-12)
+
+
+def test_a_cpu_run_names_the_cores_it_used(tmp_path):
+    """One CPU gives other numbers on one core than on two: the report's device says the cores where a run's
+    record has them; a GPU run's device and an older record's stay as they are."""
+    from bati.report.runs import RunResult
+
+    cpu = "cpu: 2-core AMD EPYC, AVX-512 (x86_64) x1"
+    base = {"family": "PointGoal", "method": "bati", "seed": 0, "p_test_return": 1.0, "p_train_return": 2.0}
+
+    def run(**extra):
+        return RunResult.from_dict({**base, **extra}, tmp_path / "eval.json")
+
+    assert run(device=cpu, cpu_cores=1).machine == f"{cpu}, 1 core used"
+    assert run(device=cpu, cpu_cores=2).machine == f"{cpu}, 2 cores used"
+    assert run(device=cpu).machine == cpu  # recorded before the cores were
+    assert run(device=cpu, cpu_cores="two").cpu_cores is None
+    assert run(device="gpu: NVIDIA H200 x1", cpu_cores=16).machine == "gpu: NVIDIA H200 x1"

@@ -129,7 +129,7 @@ def gather(spec_name: str, source: Source, root: Path) -> list[Record]:
         drift = run_drift(run)  # a probe evaluates its cell's training run: the cell's drift
         for p_test, p_train, length, commit, wall, job in results:
             records.append(Record(c.method, c.family, c.noise, c.seed, score(p_test), score(p_train), p_test,
-                                  length, commit, run.device, wall or 0.0, job, drift, bool(run.reference_returns)))
+                                  length, commit, run.machine, wall or 0.0, job, drift, bool(run.reference_returns)))
     return records
 
 

@@ -67,7 +67,7 @@ def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
         runs.append(run)
         base = {"method": c.method, "family": c.family, "seed": c.seed, "noise": f"{c.noise:g}",
                 "family_noise": f"{c.family} eps={c.noise:g}", "split": f"{c.n_train_tasks}/{c.n_test_tasks}",
-                "context_length": str(c.eval_context_length), "commit": run.commit, "device": run.device,
+                "context_length": str(c.eval_context_length), "commit": run.commit, "device": run.machine,
                 "task_range": _task_range(c), "probe": "run", "family_probe": f"{c.family} run",
                 "family_experts": f"{c.family} {c.experts}", "wall_time_s": run.wall_time_s}
         probes = plan.probes.get(cell.id, ())

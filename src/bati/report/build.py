@@ -264,7 +264,7 @@ def group_description(group: Group) -> str:
         lines.append("References: not recorded (no normalised scores).")
     evals = sorted({r.evaluations_averaged for r in group.runs if r.evaluations_averaged is not None})
     commits = sorted({r.commit for r in group.runs if r.commit})
-    devices = sorted({r.device for r in group.runs if r.device})
+    devices = sorted({r.machine for r in group.runs if r.machine})
     run_line = f"Runs: {len(group.runs)}; each run's number is the mean of its last " \
                f"{'/'.join(map(str, evals)) or '?'} evaluations, then mean ± std (ddof 0) over seeds"
     if commits:
@@ -432,7 +432,7 @@ def run_records(group: Group) -> list[dict]:
                 "p_test_inference_error": r.p_test_inference_error,
                 "p_test_drift": run_drift(r, normalise=group.normalised),
                 "random_return": refs.get("random"), "expert_return": refs.get("expert"),
-                "wall_time_s": r.wall_time_s, "device": r.device, "commit": r.commit, "path": str(r.path),
+                "wall_time_s": r.wall_time_s, "device": r.machine, "commit": r.commit, "path": str(r.path),
                 **r.held_out})
     return records
 

@@ -66,6 +66,8 @@ class RunResult:
     reference_returns: dict | None = None
     data: dict | None = None
     device: str | None = None
+    cpu_cores: int | None = None
+    """The CPU cores the run could use (its affinity; older records: None)."""
     jax_version: str | None = None
     commit: str | None = None
     uncommitted_changes: bool = False
@@ -116,11 +118,21 @@ class RunResult:
             p_train_task_returns=list(raw.get("p_train_task_returns") or []),
             curve=list(raw.get("curve") or []), config=config if isinstance(config, dict) else None,
             reference_returns=refs, data=raw.get("data") if isinstance(raw.get("data"), dict) else None,
-            device=raw.get("device"), jax_version=raw.get("jax_version"), commit=raw.get("commit"),
+            device=raw.get("device"),
+            cpu_cores=raw["cpu_cores"] if isinstance(raw.get("cpu_cores"), int) and raw["cpu_cores"] > 0 else None,
+            jax_version=raw.get("jax_version"), commit=raw.get("commit"),
             uncommitted_changes=bool(raw.get("uncommitted_changes")) or "-dirty" in str(raw.get("commit")),
             wall_time_s=None if raw.get("wall_time_s") is None else _float(raw["wall_time_s"]),
             held_out={k: float(v) for k, v in held_out.items()},
         )
+
+    @property
+    def machine(self) -> str | None:
+        """The device as reports name it: on a CPU with the cores the run used where its record has them, since
+        one machine gives other numbers on one core than on two (docs/reliability.md)."""
+        if self.device and self.cpu_cores is not None and self.device.startswith("cpu"):
+            return f"{self.device}, {self.cpu_cores} core{'s' if self.cpu_cores > 1 else ''} used"
+        return self.device
 
     def total_wall_time(self) -> float:
         """Seconds the run's job took over all its sessions (eval.json holds the last session's)."""
