@@ -1,6 +1,6 @@
 """docs/own-data.md end to end: build the GoalLine Minari dataset, train methods on it, tabulate.
 
-    python examples/own_data_goalline.py [--out results/own-data/goalline] [--steps 3000] [--seeds 0 1 2]
+    python examples/own_data_goalline.py [--out runs/own-data/goalline] [--steps 3000] [--seeds 0 1 2]
 
 Writes OUT/minari/ (the dataset), OUT/runs/<method>-seed<s>/ (one `bati train --datasets ... --eval-env
 GoalLine-v0` run each, resumable) and OUT/report.md (held-out task-inference accuracy, representation loss
@@ -84,7 +84,8 @@ def _collect(env, episodes: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--out", type=Path, default=Path("results/own-data/goalline"))
+    parser.add_argument("--out", type=Path, default=Path("runs/own-data/goalline"),
+                        help="where the dataset, runs and report go (the committed study: results/own-data/goalline)")
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--episodes", type=int, default=30, help="episodes per goal")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])

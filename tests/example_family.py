@@ -30,6 +30,7 @@ class LineGoalFamily(TaskFamily):
         context_length=50,
         latent_dim=2,
         net_dims=(32, 32),
+        expert_steps=20_000,
     )
 
     def _sample(self, n, rng):

@@ -114,6 +114,22 @@ def call(capsys, argv: list) -> tuple[int, str, list[str]]:
 
 
 # --- faults the cases inject ---------------------------------------------------------------------
+def remove_from_run(relative: str) -> Callable:
+    """The run's file gone (a finished run whose eval.json was never written: killed after its last checkpoint)."""
+    def setup(env: Env, patch, stack) -> None:
+        (env.run / relative).unlink()
+
+    return setup
+
+
+def both(*setups: Callable) -> Callable:
+    def setup(env: Env, patch, stack) -> None:
+        for one in setups:
+            one(env, patch, stack)
+
+    return setup
+
+
 def enospc_on_fsync_of(name: str):
     """A setup that makes the atomic write of the file `name` fail with ENOSPC (disk full) at its fsync."""
 
@@ -278,6 +294,19 @@ def empty_zoo(env: Env, patch, stack) -> None:
     (env.tmp / "zoo").mkdir()
 
 
+def damaged_zoo(name: str, content: bytes) -> Callable:
+    """A copy of the shipped PointGoal expert in tmp/zoo with one of its files replaced (torn, truncated)."""
+    def setup(env: Env, patch, stack) -> None:
+        import shutil
+
+        from bati.experts.zoo import ZOO_DIR
+
+        shutil.copytree(ZOO_DIR / "PointGoal", env.tmp / "zoo" / "PointGoal")
+        (env.tmp / "zoo" / "PointGoal" / name).write_bytes(content)
+
+    return setup
+
+
 def context_file(name: str, length: int = 4, **arrays) -> Callable:
     """A `bati infer` context file of PointGoal's sizes (length transitions), some arrays replaced."""
 
@@ -438,6 +467,13 @@ CASES = [
     Case("experts train --total-steps 0", lambda e: ["experts", "train", "--family", FAMILY, "--total-steps", "0",
                                                       "--out-dir", e.tmp / "expert"], 2,
          ("total_steps must be an integer >= 1, got 0", "the family's 20,000")),
+    Case("experts train: per-task updates never due", lambda e: [
+        "experts", "train", "--family", FAMILY, "--per-task", "--tasks", "0", "--total-steps", "200", "--start-steps",
+        "100", "--update-every", "1000", "--out-dir", e.tmp / "expert"], 2,
+         ("no SAC update would run", "the first at 1,000", "untrained")),
+    Case("experts train: updates per step rounding to none", lambda e: [
+        "experts", "train", "--family", FAMILY, "--updates-per-step", "0.1", "--out-dir", e.tmp / "expert"], 2,
+         ("rounds to 0 SAC updates", "untrained")),
     Case("experts train --sac.hidden-dims 0", lambda e: ["experts", "train", "--family", FAMILY, "--sac.hidden-dims",
                                                           "0", "--out-dir", e.tmp / "expert"], 2,
          ("sac.hidden_dims must be one or more integers >= 1", "(0,)")),
@@ -447,6 +483,9 @@ CASES = [
     Case("experts merge: a part without experts", lambda e: ["experts", "merge", "--family", FAMILY, "--parts",
                                                               e.tmp / "nope", "--export-dir", e.tmp / "zoo"], 2,
          ("no per-task experts for PointGoal in", "--per-task")),
+    Case("experts merge: a part that is a file", lambda e: ["experts", "merge", "--family", FAMILY, "--parts",
+                                                            e.tmp / "a_file", "--export-dir", e.tmp / "zoo"], 2,
+         ("a_file is a file: --parts takes zoo folders, each holding PointGoal/per-task/",), unwanted=("--zoo-dir",)),
     Case("experts merge --export-dir is a file", lambda e: ["experts", "merge", "--family", FAMILY, "--parts",
                                                              e.tmp / "nope", "--export-dir", e.tmp / "a_file"], 2,
          ("the zoo directory", "a_file is a file")),
@@ -466,7 +505,7 @@ CASES = [
     Case("disk full writing config.json", lambda e: [*TRAIN, "--data-root", e.data, "--out-dir", e.tmp / "new"], 2,
          ("new/config.json", "no space left on device"), setup=enospc_on_fsync_of("config.json")),
     Case("disk full writing eval.json", lambda e: e.train(), 2, ("run/eval.json", "no space left on device"),
-         setup=enospc_on_fsync_of("eval.json")),
+         setup=both(remove_from_run("eval.json"), enospc_on_fsync_of("eval.json"))),
     Case("disk full while collecting", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh], 2,
          (f"fresh/{COLLECTION}", "no space left on device"), setup=enospc_in_collection),
     Case("likelihood --run-dir is a file", lambda e: ["likelihood", "--run-dir", e.tmp / "a_file"], 2,
@@ -476,11 +515,27 @@ CASES = [
     Case("likelihood on config.json []", lambda e: ["likelihood", "--run-dir", e.run], 2,
          ("config.json holds a JSON list",), setup=write("config.json", "[]")),
     Case("infer: an empty context file", lambda e: ["infer", "--run-dir", e.run, "--context", e.tmp / "c.npz"], 2,
-         ("c.npz: not a readable .npz context file",), setup=write("c.npz", b"", where="tmp")),
+         ("c.npz: not an .npz file",), setup=write("c.npz", b"", where="tmp")),
+    Case("infer: a text file", lambda e: ["infer", "--run-dir", e.run, "--context", e.tmp / "c.txt"], 2,
+         ("c.txt: not an .npz file (an .npz is a zip of .npy arrays",), setup=write("c.txt", "1 2 3\n", where="tmp"),
+         unwanted=("pickled",)),
+    Case("likelihood --context-length 0", lambda e: ["likelihood", "--run-dir", e.run, "--context-length", "0"], 2,
+         ("context_length must be an integer >= 1, got 0",)),
+    Case("likelihood on a read-only run", lambda e: ["likelihood", "--run-dir", e.run], 2,
+         ("the run directory", "not writable"), setup=unwritable),
     Case("infer: rewards of shape (C, 1)", lambda e: ["infer", "--run-dir", e.run, "--context", e.tmp / "c.npz"], 2,
          ("c.npz: rewards has shape (4, 1); expected (C,)",), setup=context_file("c.npz", rewards=np.zeros((4, 1)))),
     Case("infer: complex actions", lambda e: ["infer", "--run-dir", e.run, "--context", e.tmp / "c.npz"], 2,
          ("c.npz: actions holds complex128 values",), setup=context_file("c.npz", actions=np.zeros((4, 2), complex))),
+    Case("a torn expert.json", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh, "--zoo-dir",
+                                          e.tmp / "zoo"], 2, ("zoo/PointGoal/expert.json is damaged", "export the expert again"),
+         setup=damaged_zoo("expert.json", b'{"family": "Poi')),
+    Case("a truncated actor file", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh, "--zoo-dir",
+                                              e.tmp / "zoo"], 2, ("zoo/PointGoal/actor.msgpack is damaged",),
+         setup=damaged_zoo("actor.msgpack", b"\x82\xa5")),
+    Case("a data size no machine holds (train)", lambda e: [*TRAIN, "--episodes-per-task", "1000000000", "--data-root",
+                                                            e.fresh, "--out-dir", e.tmp / "new"], 2,
+         ("1,000,000,000 episodes per training task", "TB of PointGoal data; this machine has", "of memory")),
     Case("no expert to collect with", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh, "--zoo-dir",
                                                  e.tmp / "zoo"], 2, ("no expert for PointGoal",), setup=empty_zoo),
     Case("sweep out-dir is a file", lambda e: ["sweep", "--out-dir", e.tmp / "a_file"], 2, ("a_file is a file",)),
@@ -492,6 +547,8 @@ CASES = [
          ("iql.hidden_dims must be one or more integers >= 1", "'abc'"), setup=edit_config(iql__hidden_dims="abc")),
     Case("--config: an unknown setting", lambda e: ["train", "--config", e.run], 2,
          ("setting(s) this version does not know: 'stpes'",), setup=edit_config(stpes=5)),
+    Case("--config: an unknown setting in a section", lambda e: ["train", "--config", e.run], 2,
+         ("setting(s) this version does not know: 'iql.hiddn'",), setup=edit_config(iql__hiddn=3)),
     Case("config.json torn", lambda e: e.train(), 2, ("config.json is not valid JSON",),
          setup=write("config.json", '{"family": "Poi')),
     Case("rerun with other settings", lambda e: ["train", "--steps", "10", "--data-root", e.data, "--out-dir", e.run], 2,

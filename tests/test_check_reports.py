@@ -16,7 +16,7 @@ def test_check_reports_finds_a_committed_report_that_does_not_regenerate(tmp_pat
 
     project = tmp_path / "project"
     out = project / "results" / "quick" / "experiments"
-    assert main(["experiment", "ood-tasks", "--methods", "bati", "--report-only", "--out-dir", str(out),
+    assert main(["experiment", "ood-tasks", "--report-only", "--out-dir", str(out),
                  "--data-root", str(tmp_path / "data")]) == 0
     report = out / "ood-tasks" / "report.md"
     (project / "results" / "other").mkdir()

@@ -171,8 +171,9 @@ def test_a_family_with_fewer_seeds_is_named_not_pooled(tmp_path):
     write_cells(tmp_path, CPU, "main", {("focal", "WalkerParam"): (HIGH, LOW)}, seeds=(0, 1))
     c2 = next(f for f in decide(tmp_path) if f.claim.name == "C2" and f.source is CPU)
     assert c2.verdict == "partly"
-    assert c2.lines[0].startswith("focal (1 family: AntDir): p_test - p_train -0.60 vs BATI +0.00 (not pooled, fewer than 3 "
-                                  "seeds: WalkerParam); P(BATI falls less) 1.00 [1.00, 1.00]")
+    assert c2.lines[0].startswith("focal (1 family: AntDir): p_train 0.85 -> p_test 0.25 (change -0.60) vs BATI 0.85 -> "
+                                  "0.85 (+0.00) (not pooled, fewer than 3 seeds: WalkerParam); P(BATI falls less) "
+                                  "1.00 [1.00, 1.00]")
 
 
 def test_a_claim_about_every_family_holds_at_most_partly_on_some(tmp_path):
@@ -303,7 +304,7 @@ def test_a_family_whose_runs_are_too_few_to_rank_is_named_apart(tmp_path):
     findings = decide(tmp_path)
     c8 = next(f for f in findings if f.claim.name == "C8" and f.source is CPU)
     assert c8.families == ["AntDir", "HopperParam"] and c8.thin == ["HopperParam"] and c8.verdict == "partly"
-    assert claims_module.every_scale(findings, c8.claim) == ("cpu: partly (AntDir; 1 of 5 families; "
+    assert claims_module.every_scale(findings, c8.claim) == ("cpu: partly (comparisons: 1 hold; AntDir; 1 of 5 families; "
                                                              "fewer than 3 seeds: HopperParam)")
 
 
@@ -335,3 +336,48 @@ def test_other_data_stands_beside_the_default_data_and_never_decides(tmp_path):
         "cpu total size, per-task experts: not reproduced (HalfCheetahDir; 1 of 5 families)")
     write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})
     assert overall(decide(tmp_path), c1) == ("partly", "cpu")
+
+
+def test_a_partly_names_the_comparisons_that_hold_are_undecided_and_go_against(tmp_path):
+    """C2 with FOCAL falling, CSRO level with BATI's fall (undecided) and Recon falling less than BATI: "partly"
+    with each named, in the claim's section and counted in the summary row."""
+    fall = (0.0, 0.05, 0.1)
+    scores = {("bati", f): (HIGH, tuple(h - 0.3 for h in HIGH)) for f in FAMILIES}
+    scores |= {("focal", f): (HIGH, LOW) for f in FAMILIES}
+    scores |= {("csro", f): (HIGH, tuple(h - 0.3 + d for h, d in zip(HIGH, (-0.2, 0.0, 0.2)))) for f in FAMILIES}
+    scores |= {("recon", f): (HIGH, tuple(h - d for h, d in zip(HIGH, fall))) for f in FAMILIES}
+    write_cells(tmp_path, CPU, "main", scores)
+    c2 = next(f for f in decide(tmp_path) if f.claim.name == "C2" and f.source is CPU)
+    assert c2.verdict == "partly"
+    assert (c2.tally.holds, c2.tally.undecided, c2.tally.against) == (["focal"], ["csro"], ["recon"])
+    page = claims_module.claims_markdown([c2], "bati claims")
+    assert "**partly (1 hold, 1 undecided, 1 against)**" in page
+    assert "- decided: holds: focal; undecided: csro; against: recon" in page
+
+
+def test_only_bati_positive_fails_where_another_method_is_positive_too(tmp_path):
+    """C6 checks the sign of every method that ran: FOCAL positive refutes "only BATI" (the page said "partly"),
+    CSRO's sign undecided leaves it "partly"; BATI-R and the oracle are shown, never counted."""
+    negative = (-0.3, -0.2, -0.25)
+    write_cells(tmp_path, CPU, "ood-tasks", {("bati", "AntDir"): (HIGH, HIGH), ("unicorn", "AntDir"): (HIGH, negative),
+                                            ("csro", "AntDir"): (HIGH, (-0.3, 0.0, 0.3))})
+    assert verdicts(tmp_path)["C6"][0] == "partly"
+    write_cells(tmp_path, CPU, "ood-tasks", {("focal", "AntDir"): (HIGH, (0.2, 0.25, 0.3))})
+    c6 = next(f for f in decide(tmp_path) if f.claim.name == "C6" and f.source is CPU)
+    assert c6.verdict == "not reproduced" and "focal positive" in c6.tally.against
+    assert "csro's sign" in c6.tally.undecided and "unicorn negative" in c6.tally.holds
+
+
+def test_an_unwritable_page_is_refused_before_any_interval_is_computed(tmp_path, monkeypatch):
+    import os
+
+    from bati.errors import PathError
+
+    write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH)})
+    computed = []
+    monkeypatch.setattr(claims_module, "decide", lambda root: computed.append(root) or [])
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if mode & os.W_OK else real(path, mode, **kw))
+    with pytest.raises(PathError, match="not writable"):
+        claims_module.write_claims(tmp_path, tmp_path / "out" / "claims.md")
+    assert computed == [] and not (tmp_path / "out").exists()

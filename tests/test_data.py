@@ -631,3 +631,15 @@ def test_a_resolved_runs_collection_reads_the_collection_it_names(small):
     assert loaded.path == data.path and loaded.fingerprint() == data.fingerprint()
     with pytest.raises(ValueError, match="holds 5 episodes per training task"):
         TrainConfig(family=FAMILY, data_root=root, episodes_per_task=6).resolve().collection.collect(check_only=True)
+
+
+def test_a_collection_larger_than_the_machine_is_refused_before_anything_is_written(tmp_path, monkeypatch):
+    from bati.data import collect as collect_module
+
+    monkeypatch.setattr(collect_module, "available_memory", lambda: 10_000)  # 10 KB
+    # (20 x 2 + 2 x 20 x 1) episodes x 200 steps x 4 bytes x (2 x obs 2 + action 2 + reward + collector) = 512,000 B
+    with pytest.raises(ValueError, match=r"2 episodes per training task and 1 per context dataset make ~500.0 KB of "
+                                         r"PointGoal data; this machine has 9.8 KB of memory"):
+        collect_module.collect("PointGoal", "quick", root=tmp_path / "data", n_episodes=2, n_context_episodes=1,
+                               progress=False, workers=1)
+    assert not (tmp_path / "data").exists()

@@ -451,3 +451,23 @@ def test_actions_are_clipped_to_unit_box(name):
         results.append((obs, reward))
     np.testing.assert_array_equal(results[0][0], results[1][0])
     assert results[0][1] == results[1][1]
+
+
+def test_a_broken_family_plugin_is_named_and_the_other_families_stay(monkeypatch):
+    import importlib.metadata
+
+    import bati.envs as envs_module
+    from bati.errors import BatiWarning
+
+    class Broken:
+        name, value = "broken", "brokenpkg.families:register"
+
+        def load(self):
+            raise ImportError("No module named 'brokenpkg'")
+
+    monkeypatch.setattr(envs_module, "_plugins_loaded", False)
+    monkeypatch.setattr(importlib.metadata, "entry_points", lambda group: [Broken()])
+    with pytest.warns(BatiWarning, match="entry point 'broken' .brokenpkg.families:register. failed and its families "
+                                         "are left out: ImportError: No module named 'brokenpkg'"):
+        names = envs_module.family_names()
+    assert "HalfCheetahDir" in names and "PointGoal" in names

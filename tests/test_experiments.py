@@ -429,3 +429,14 @@ def test_a_probe_saved_before_a_new_probe_setting_is_read_back(tmp_path):
     probe_path(tmp_path, probe).write_text(json.dumps({"probe": old, "step": 10}))
     assert read_probe(tmp_path, probe) == {"probe": old, "step": 10}
     assert read_probe(tmp_path, Probe(eval_context_length=200)) is None
+
+
+def test_an_experiment_writes_under_runs_never_into_the_committed_results_unless_asked(tmp_path, monkeypatch):
+    from bati.experiments.experiment import ExperimentJob, run_experiment_job
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "results" / "quick" / "experiments").mkdir(parents=True)  # a checkout's committed studies
+    outcome = run_experiment_job(ExperimentJob("main", families=("PointGoal",), methods=("bati",), report_only=True),
+                                 show_progress=False)
+    assert outcome.report_dir == Path("runs/experiments/quick/main") and (tmp_path / outcome.report_dir).is_dir()
+    assert not any((tmp_path / "results").rglob("*.*"))

@@ -171,3 +171,12 @@ def test_experts_train_leaves_the_package_zoo_as_it_was_unless_asked(trained, tm
     assert f"exported to {run / 'zoo'}" in " ".join(capsys.readouterr().out.split())
     assert load("PointGoal", run / "zoo").meta["train_steps"] == 1200
     assert {p: p.read_bytes() for p in sorted(ZOO_DIR.rglob("*")) if p.is_file()} == shipped
+
+
+def test_a_budget_is_collected_in_whole_episodes_and_said_so(tmp_path, capsys):
+    from bati.experts.train import ExpertTrainConfig
+
+    # PointGoal's episodes are 200 steps: per task 1,050 -> 6 episodes; 4 lockstep envs -> 2 rounds of 800
+    assert ExpertTrainConfig("PointGoal", per_task=True, total_steps=1050, start_steps=100).resolve().collected_steps == 1200
+    assert ExpertTrainConfig("PointGoal", total_steps=1050, start_steps=100).resolve().collected_steps == 1600
+    assert ExpertTrainConfig("PointGoal", total_steps=1600, start_steps=100).resolve().collected_steps == 1600

@@ -128,7 +128,10 @@ def test_an_experiment_plans_runs_and_reports_a_family_of_your_own_with_the_pape
     assert not outcome.failures
     report = (outcome.report_dir / "report.md").read_text()
     # planned and counted with the paper's five families (55 cells) plus LineGoal's 11, one of them finished
-    assert "cells finished: 1 of 66" in report and "LineGoal" in report.split("**p test return")[1].splitlines()[2]
+    assert ("cells finished: 1 of the command's 1; the tables hold every finished cell of the experiment in this "
+            "folder: 1 of 66") in report and "LineGoal" in report.split("**p test return")[1].splitlines()[2]
+    command = report.split("command: ")[1].splitlines()[0]  # reruns exactly this job's cells
+    assert "--methods oracle" in command and "--families LineGoal" in command
     config = json.loads(next((tmp_path / "results" / "LineGoal").rglob("config.json")).read_text())
     assert config["zoo_dir"] == str(tmp_path / "zoo")  # --zoo-dir reaches the cells (not part of their identity)
     assert "--zoo-dir" in job.command_line(whole=True)
@@ -225,6 +228,7 @@ def test_docs_extending_runs_as_written(tmp_path):
     *definitions, last = blocks
     check = textwrap.dedent("""
         import gymnasium, numpy
+        from pathlib import Path
         from bati.envs import get_family
         from bati.experts import load
         register()
@@ -234,6 +238,8 @@ def test_docs_extending_runs_as_written(tmp_path):
         obs, _ = env.reset(seed=0)
         action = load("LineGoal")(obs, task)
         assert action.shape == (1,) and env.step(action)[0].shape == (1,)
+        from bati.experts.train import ExpertTrainConfig  # `bati experts train --family LineGoal`: the record's budget
+        assert ExpertTrainConfig("LineGoal", out_dir=Path("expert")).resolved().total_steps == 20_000
         print("ok")
     """)
     imports = "\n".join(line for line in last.splitlines() if line.startswith("from ") or line.startswith("import "))
@@ -241,3 +247,17 @@ def test_docs_extending_runs_as_written(tmp_path):
     script = "\n\n".join(definitions) + "\n" + imports + "\n" + check
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]
+
+
+def test_a_family_without_an_expert_budget_is_told_to_give_one(line_goal, monkeypatch):
+    from dataclasses import replace
+
+    from bati.experts.train import ExpertTrainConfig
+
+    monkeypatch.setattr(type(line_goal), "record", replace(line_goal.record, expert_steps=None))
+    with pytest.raises(ValueError, match=r"LineGoal has no expert budget \(its FamilyRecord.expert_steps is None\): "
+                                         "give --total-steps"):
+        ExpertTrainConfig("LineGoal").resolved()
+    assert ExpertTrainConfig("LineGoal", total_steps=10_000).resolved().total_steps == 10_000
+    with pytest.raises(ValueError, match="not a SAC"):
+        ExpertTrainConfig("KuhnPoker").resolved()

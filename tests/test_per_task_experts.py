@@ -40,6 +40,7 @@ def trained(tmp_path_factory):
                         _train(tmp_path, "resumed", tasks=(0, 1, 2), start_steps=100)),
             "straight": _train(tmp_path, "straight", tasks=(0, 1, 2), start_steps=100),
             "all": _train(tmp_path, "all", total_steps=300),
+            "vmapped": _train(tmp_path, "vmapped", tasks=(0, 1, 2), task_axis="vmap"),
             "dir": tmp_path}
 
 
@@ -192,9 +193,13 @@ def test_per_task_collection_is_its_own_collection_and_refuses_other_tasks(train
     (zoo / "PointGoal" / PER_TASK_DIR).mkdir(parents=True)
     for name in ("actors.msgpack", "expert.json"):
         (zoo / "PointGoal" / PER_TASK_DIR / name).write_bytes((source / name).read_bytes())
-    with pytest.raises(ValueError, match="trained for the 3 training tasks of data seed 0"):
+    with pytest.raises(ValueError, match=r"cover 3 of the 20 training tasks of data seed 0; tasks 3-19 have none: "
+                                         r"train them \(`bati experts train --family PointGoal --per-task --tasks 3 4"):
         collect("PointGoal", "quick", root=tmp_path / "data", zoo_dir=zoo, experts="per-task", progress=False,
                 workers=1, n_episodes=2, n_context_episodes=1)
+    with pytest.raises(ValueError, match="trained for the 3 training tasks of data seed 0; this collection's"):
+        collect("PointGoal", "quick", root=tmp_path / "data", zoo_dir=zoo, experts="per-task", progress=False,
+                workers=1, n_episodes=2, n_context_episodes=1, seed=1)
     assert not (tmp_path / "data" / "PointGoal").exists() or not any((tmp_path / "data" / "PointGoal").iterdir())
     family = get_family("PointGoal")
     path = store.collection_dir(tmp_path, family, "quick", 0, 1.0, None, "per-task")
@@ -248,3 +253,93 @@ def test_the_card_of_merged_experts_says_how_many_programs_trained_them(trained,
     assert card["train_parts"] == 4
     text = (zoo / "PointGoal" / PER_TASK_DIR / "card.md").read_text()
     assert "all 20 trained in 4 programs (`bati experts merge` joined them), in all 2.5 min" in text
+
+
+def test_vmapped_updates_train_the_experts_the_mapped_updates_train(trained):
+    from bati.experts.per_task import default_task_axis
+
+    # the same losses and streams, one batched program instead of a loop: equal up to float rounding
+    jax.tree_util.tree_map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-4),
+                           trained["vmapped"].actors, trained["three"].actors)
+    assert json.loads((trained["dir"] / "vmapped" / "config.json").read_text())["task_axis"] == "vmap"
+    assert json.loads((trained["dir"] / "three" / "config.json").read_text())["task_axis"] == default_task_axis()
+    assert default_task_axis("cpu") == "map" and default_task_axis("gpu") == "vmap"
+    with pytest.raises(ValueError, match="task_axis='pmap'"):
+        ExpertTrainConfig("PointGoal", per_task=True, task_axis="pmap").resolved()
+
+
+def test_the_export_records_its_learning_curve_and_the_merge_joins_the_parts_curves(trained, tmp_path):
+    from bati.experts.per_task import _merged_curve
+
+    three = trained["three"].meta
+    logged = [json.loads(line) for line in (trained["dir"] / "three" / "metrics.jsonl").read_text().splitlines()]
+    assert three["eval_curve"] == {"steps": [r["steps"] for r in logged], "mean_return": [r["eval_return"] for r in logged]}
+    assert three["final_eval_returns"] == logged[-1]["eval_returns"]
+    a = {"tasks": [[0.0]] * 3, "eval_curve": {"steps": [10, 20, 30], "mean_return": [1.0, 2.0, 4.0]}}
+    b = {"tasks": [[0.0]], "eval_curve": {"steps": [10, 20], "mean_return": [5.0, 6.0]}}
+    assert _merged_curve([a, b]) == {"steps": [10, 20], "mean_return": [2.0, 3.0]}  # weighted by tasks: 3 and 1
+    assert _merged_curve([a, {"tasks": [[0.0]]}]) is None
+
+
+def test_a_card_says_whether_the_curve_still_rose_over_the_budgets_last_fifth():
+    from bati.experts.card import learning_curve
+
+    rising = learning_curve({"eval_curve": {"steps": [0, 50, 100], "mean_return": [0.0, 50.0, 100.0]}})
+    assert rising == {"from_steps": 80, "to_steps": 100, "change": 20.0, "final": 100.0, "still_rising": True}
+    flat = learning_curve({"eval_curve": {"steps": [0, 80, 100], "mean_return": [0.0, 98.0, 100.0]}})
+    assert flat["change"] == pytest.approx(2.0) and not flat["still_rising"]  # 2 < 5% of 100
+    assert learning_curve({}) is None
+
+
+def test_per_task_contexts_draw_their_collector_among_tied_training_tasks():
+    family = get_family("HalfCheetahDir")
+    first = make_plan(family, 0, n_episodes=10, n_context_episodes=20)
+    drawn = make_plan(family, 0, n_episodes=10, n_context_episodes=20, ties="drawn")
+    train = first.train_tasks
+    used = set()
+    for f, d in zip(first.datasets, drawn.datasets):
+        if f.split == "train":  # Eq. 9's datasets and every reset seed stay as they were
+            np.testing.assert_array_equal(f.collectors, d.collectors)
+            continue
+        task = f.task
+        wanted = -task if f.split == "p_test" else task  # the opposite direction, or the same one
+        assert all(train[c] == wanted for c in d.collectors), (f.name, d.collectors)
+        assert len(set(f.collectors)) == 1  # "first": one expert for every episode
+        used.update(int(c) for c in d.collectors)
+        np.testing.assert_array_equal(f.reset_seeds, d.reset_seeds)
+    assert used == set(range(len(train)))  # every training task's expert collects some context
+    point = get_family("PointGoal")  # no ties: the same plan either way
+    for f, d in zip(make_plan(point, 0, 4, 2).datasets, make_plan(point, 0, 4, 2, ties="drawn").datasets):
+        np.testing.assert_array_equal(f.collectors, d.collectors)
+    with pytest.raises(ValueError, match="ties='last'"):
+        make_plan(family, 0, 4, 2, ties="last")
+
+
+def test_a_per_task_collection_by_other_experts_is_refused_not_reused(trained, tmp_path):
+    zoo = tmp_path / "zoo"
+    shutil.copytree(trained["dir"] / "zoo-all", zoo)
+    sizes = dict(root=tmp_path / "data", zoo_dir=zoo, experts="per-task", progress=False, workers=1, n_episodes=2,
+                 n_context_episodes=1)
+    first = collect("PointGoal", "quick", **sizes)
+    assert first.manifest["settings"]["ties"] == "drawn"
+    assert collect("PointGoal", "quick", **sizes).cached
+    shutil.copy(trained["dir"] / "zoo-vmapped" / "PointGoal" / PER_TASK_DIR / "actors.msgpack",
+                zoo / "PointGoal" / PER_TASK_DIR / "actors.msgpack")  # retrained experts, same place
+    with pytest.raises(ValueError, match="collected by other per-task experts than this bati's"):
+        collect("PointGoal", "quick", **sizes)
+    assert (first.path / store.MANIFEST).is_file()  # refused, nothing removed
+
+
+def test_a_card_for_a_read_only_zoo_is_refused_before_any_episode(trained, tmp_path, monkeypatch):
+    import os
+
+    from bati.errors import PathError
+    from bati.experts import card as card_module
+
+    zoo = tmp_path / "zoo"
+    shutil.copytree(trained["dir"] / "zoo-all", zoo)
+    monkeypatch.setattr(card_module, "expert_episodes", lambda *a, **k: pytest.fail("evaluated before the check"))
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if mode & os.W_OK else real(path, mode, **kw))
+    with pytest.raises(PathError, match="not writable"):
+        card_module.write_card("PointGoal", zoo_dir=zoo, experts="per-task")

@@ -156,3 +156,27 @@ def test_stall_watchdog_is_off_after_its_body():
               "with stall_watchdog(0.3):\n    pass\ntime.sleep(1.0)\nprint('done')")
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False)
     assert (done.returncode, done.stdout, done.stderr) == (0, "done\n", "")
+
+
+def test_an_interrupted_bati_program_leaves_at_once_whatever_threads_are_still_busy():
+    """Ctrl-C during the first compilation crashed the interpreter's shutdown (exit 139) under XLA's busy threads:
+    after its clean-up the program leaves with 130 without waiting for them (here a thread busy for 60 s)."""
+    import subprocess
+    import sys
+    import time
+
+    code = """
+import sys, threading, time
+from bati import cli
+threading.Thread(target=time.sleep, args=(60,)).start()  # busy, not a daemon: shutdown would wait for it
+class Command:
+    def run(self):
+        raise KeyboardInterrupt
+cli.parse = lambda commands, argv, error: Command()
+sys.argv = ["bati", "envs"]
+sys.exit(cli.main())
+"""
+    start = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=50)
+    assert done.returncode == 130 and "interrupted; run the same command again to resume" in done.stderr
+    assert time.monotonic() - start < 30 and "Traceback" not in done.stderr

@@ -536,3 +536,26 @@ def test_a_cpu_run_names_the_cores_it_used(tmp_path):
     assert run(device=cpu).machine == cpu  # recorded before the cores were
     assert run(device=cpu, cpu_cores="two").cpu_cores is None
     assert run(device="gpu: NVIDIA H200 x1", cpu_cores=16).machine == "gpu: NVIDIA H200 x1"
+
+
+def test_an_unwritable_report_folder_is_named_not_its_staging_folder(results, tmp_path, monkeypatch):
+    import os
+
+    from bati.errors import BatiError
+
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if mode & os.W_OK else real(path, mode, **kw))
+    with pytest.raises(BatiError, match=r"the report directory .*/out is not writable") as caught:
+        build_report(results, tmp_path / "out", reps=10)
+    assert "/.out-" not in str(caught.value) and not (tmp_path / "out").exists()
+
+
+def test_the_report_modules_import_no_jax():
+    """`bati report` reads JSON files: importing its modules (and the experts' kinds they label data with) must not
+    pull in JAX, whose import alone takes seconds."""
+    import subprocess
+    import sys
+
+    code = "import sys, bati.report.build, bati.experts.kinds; print('jax' in sys.modules)"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.stdout.strip() == "False", done.stderr[-2000:]

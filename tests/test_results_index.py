@@ -98,3 +98,53 @@ def test_short_device_names():
 def test_results_refuses_a_root_without_results(tmp_path, capsys):
     assert main(["results", "--root", str(tmp_path)]) == 2
     assert "not a directory" in capsys.readouterr().err
+
+
+def _kuhn_study_tree(root: Path) -> Study:
+    """A results tree with one KuhnPoker study: two finished runs and one damaged eval.json."""
+    from bati.experiments.index import STORES
+
+    (root / STORES["quick"] / "kuhn").mkdir(parents=True)
+    (root / STORES["quick"] / "kuhn" / "report.md").write_text("# kuhn\n")
+    for seed, text in ((0, None), (1, None), (2, "{not json")):
+        run = root / STORES["quick"] / "KuhnPoker" / "abc" / f"bati-seed{seed}"
+        run.mkdir(parents=True)
+        record = {"family": "KuhnPoker", "method": "bati", "seed": seed, "p_test_return": 0.1, "p_train_return": 0.1,
+                  "commit": "abc", "device": "cpu", "wall_time_s": 60.0}
+        (run / "eval.json").write_text(text or json.dumps(record))
+    return next(s for s in studies(root) if s.experiment == "kuhn")
+
+
+def test_the_index_reads_a_study_whose_family_is_not_installed_and_names_a_damaged_cell(tmp_path, monkeypatch):
+    """Without OpenSpiel a KuhnPoker study cannot be planned: its cells are counted from its files (the index
+    failed with "KuhnPoker needs OpenSpiel"), and a damaged eval.json is named, not dropped without a word."""
+    from bati.envs import FamilyUnavailable
+    from bati.experiments.index import summarise
+    from bati.report.runs import ReportWarning
+
+    study = _kuhn_study_tree(tmp_path)
+
+    def unavailable(self, root):
+        raise FamilyUnavailable("KuhnPoker needs OpenSpiel, which is not installed")
+
+    monkeypatch.setattr(Study, "plan", unavailable)
+    with pytest.warns(ReportWarning, match=r"bati-seed2/eval.json"):
+        summary = summarise(study, tmp_path)
+    assert (summary.finished, summary.seeds) == (2, (0, 1))
+
+
+def test_results_writes_all_its_pages_or_none(tmp_path, monkeypatch):
+    import os
+
+    from bati.errors import PathError
+    from bati.experiments.index import RESULTS_PAGE, write_results
+
+    _kuhn_study_tree(tmp_path)
+    (tmp_path / "docs").mkdir()
+    (tmp_path / INDEX).write_text("old index\n")
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if Path(path).name == "docs" and mode & os.W_OK
+                        else real(path, mode, **kw))
+    with pytest.raises(PathError, match="docs"):
+        write_results(tmp_path, readme=False)
+    assert (tmp_path / INDEX).read_text() == "old index\n" and not (tmp_path / RESULTS_PAGE).exists()

@@ -170,10 +170,10 @@ def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(
     assert failed[0]["label"] == "PointGoal/recon/seed0" and failed[0]["error"] == "RuntimeError: disk on fire"
     # without a terminal (a background run's log), one line per job as it starts and ends
     lines = [line.split("] ", 1)[1] for line in capsys.readouterr().err.splitlines() if "] sweep: " in line]
-    assert lines[0] == "sweep: PointGoal quick eps 1 bati seeds 0: running"
-    assert lines[1].startswith("sweep: PointGoal quick eps 1 bati seeds 0: done after ")
-    assert lines[2:] == ["sweep: PointGoal quick eps 1 recon seeds 0: running",
-                         "sweep: PointGoal quick eps 1 recon seeds 0: failed (RuntimeError: disk on fire) after 0.0 min"]
+    assert lines[0] == "sweep: PointGoal quick eps 1 (one task-conditioned expert) bati seeds 0: running"
+    assert lines[1].startswith("sweep: PointGoal quick eps 1 (one task-conditioned expert) bati seeds 0: done after ")
+    assert lines[2:] == ["sweep: PointGoal quick eps 1 (one task-conditioned expert) recon seeds 0: running",
+                         "sweep: PointGoal quick eps 1 (one task-conditioned expert) recon seeds 0: failed (RuntimeError: disk on fire) after 0.0 min"]
 
     ran = []
     monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None, also=():
@@ -306,7 +306,8 @@ def test_cli_experiment_report_only_trains_nothing_and_covers_every_cell(tmp_pat
     assert main(args) == 0
     report = (out / "ood-tasks" / "report.md").read_text()
     n_cells = len(plan_experiment(get_spec("ood-tasks"), "quick", out).cells)  # every method, not only bati
-    assert f"cells finished: 0 of {n_cells}" in report and "--methods" not in report
+    # the tables cover every cell of the experiment; the command is what reruns exactly this one's
+    assert f"experiment in this folder: 0 of {n_cells}" in report and "--methods bati" in report
     assert "nothing trained" in capsys.readouterr().out and not data.exists()
 
 

@@ -166,6 +166,15 @@ def test_a_rerun_with_any_other_setting_is_refused_and_names_it(tmp_path, point_
         train(_config(tmp_path, "run", steps=5, eval_every=5, eval_context_length=30), show_progress=False)
 
 
+def test_a_rerun_of_a_finished_run_rewrites_none_of_its_files(tmp_path, point_data):
+    first = train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
+    files = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in (tmp_path / "run").iterdir() if p.is_file()}
+    again = train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
+    assert again == json.loads(json.dumps(first))  # the record as written, its wall time included
+    assert {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in (tmp_path / "run").iterdir()
+            if p.is_file() and p.name in files} == files
+
+
 def test_a_checkpoint_with_other_networks_is_refused(tmp_path, point_data):
     train(_config(tmp_path, "small", steps=5, eval_every=5, iql=IQLConfig(hidden_dims=(16, 16))), show_progress=False)
     train(_config(tmp_path, "run", steps=5, eval_every=5), show_progress=False)
@@ -237,9 +246,9 @@ def test_infer_and_novelty_on_a_trained_bati_auto_run(tmp_path, monkeypatch, poi
     assert odd["unknown"] is True and odd["score"] > max(plain["score"], odd["threshold"])
     np.savez(tmp_path / "bad.npz", **{**context, "actions": context["actions"][:5]})
     assert main(["infer", "--run-dir", str(run_dir), "--context", str(tmp_path / "bad.npz")]) == 2
-    assert "actions has shape (5, 2); expected (20, 2)" in capsys.readouterr().err
+    assert "actions has shape (5, 2); expected (C, dim) with C = 20 transitions" in capsys.readouterr().err
     assert main(["infer", "--run-dir", str(run_dir), "--context", str(tmp_path / "none.npz")]) == 2
-    assert "not a readable .npz context file" in capsys.readouterr().err
+    assert "none.npz: cannot read the context file" in capsys.readouterr().err
     saved = run_probe(run_dir, Probe(novelty=True, repeats=2))
     for key in ("p_train_auroc", "p_test_auroc", "p_test_vs_p_train_auroc", "p_train_flagged", "p_test_flagged"):
         assert 0.0 <= saved[key] <= 1.0, key
@@ -432,7 +441,7 @@ def _context_file(tmp_path, name="ctx.npz", c=4, **override):
 
 
 @pytest.mark.parametrize("make, message", [
-    (lambda d: (d / "empty.npz").write_bytes(b"") or d / "empty.npz", "not a readable .npz context file"),
+    (lambda d: (d / "empty.npz").write_bytes(b"") or d / "empty.npz", "not an .npz file"),
     (lambda d: np.save(d / "one.npy", np.zeros(3)) or d / "one.npy", "one array (.npy), not an .npz context file"),
     (lambda d: _context_file(d, rewards=np.zeros((4, 1))), "rewards has shape (4, 1); expected (C,)"),
     (lambda d: _context_file(d, rewards=np.float64(1.0)), "rewards has shape (); expected (C,)"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 import warnings
 from dataclasses import dataclass
@@ -306,26 +307,21 @@ def main(argv: list[str] | None = None) -> int:
         except (BatiError, TaskError, ValueError) as err:
             return _error(str(err), 2)
         except Terminated:  # SIGTERM (kill, a scheduler): the same clean-up as Ctrl-C
-            _ignore_further_interrupts(argv)
-            return _error("terminated; run the same command again to resume", TERMINATED_EXIT_CODE)
+            return _stopped(argv, _error("terminated; run the same command again to resume", TERMINATED_EXIT_CODE))
         except KeyboardInterrupt:
-            _ignore_further_interrupts(argv)
-            return _error("interrupted; run the same command again to resume", 130)
+            return _stopped(argv, _error("interrupted; run the same command again to resume", 130))
     return 0
 
 
-def _ignore_further_interrupts(argv) -> None:
-    """The command has stopped and cleaned up: a second Ctrl-C while the interpreter exits (its atexit
-    callbacks) would only print a traceback, so it is ignored (the `bati` program only, `argv` None: a
-    caller of main() keeps its own Ctrl-C)."""
-    import signal
-
+def _stopped(argv, code: int) -> int:
+    """After an interrupt's clean-up the `bati` program (`argv` None) leaves at once: the interpreter's shutdown
+    tore modules down under threads still busy (XLA compiling, an evaluator's workers): a segmentation fault
+    when Ctrl-C came during the first compilation. A caller of main() gets the code and keeps its process."""
     if argv is not None:
-        return
-    try:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-    except ValueError:  # not the main thread (main() called from a thread): nothing to protect
-        pass
+        return code
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 NEEDS_A_VALUE = ("--datasets",)

@@ -193,7 +193,10 @@ class TrainConfig:
         path = Path(path)
         record = read_run_config(path.parent if path.name == "config.json" else path)
         unknown = sorted(set(record) - {f.name for f in fields(cls)} - RECORD_ONLY)
-        if unknown:
+        sections = {"iql": IQLConfig, **method_sections()}
+        unknown += sorted(f"{name}.{key}" for name, section in sections.items() if isinstance(record.get(name), dict)
+                          for key in set(record[name]) - {f.name for f in fields(section)})
+        if unknown:  # a typo in a hand-edited config would otherwise train with the default
             raise ValueError(f"{path} has setting(s) this version does not know: {', '.join(map(repr, unknown))}")
         return cls.from_record(record)
 
@@ -351,6 +354,8 @@ class TrainConfig:
         collection = None if own else Collection(
             family, resolved.data_scale, resolved.data_seed, resolved.noise, resolved.data_root, resolved.task_split(),
             resolved.experts, resolved.episodes_per_task, resolved.context_episodes)
+        if collection is not None:
+            collection.check_fits()  # a size that would exhaust the machine: one line, before any record
         return ResolvedRun(resolved, family, collection)
 
 

@@ -130,9 +130,18 @@ def novelty(run_dir: Path, repeats: int = 5, quantile: float = QUANTILE, seed: i
     return out
 
 
-def read_context(path: Path, obs_dim: int, action_dim: int) -> dict:
+def read_context(path: Path, obs_dim: int | None = None, action_dim: int | None = None) -> dict:
     """A context file: an .npz with observations (C, obs_dim), actions (C, action_dim), rewards (C,),
-    next_observations (C, obs_dim) of real numbers, C >= 1. One-line errors naming the file and the array."""
+    next_observations (C, obs_dim) of real numbers, C >= 1. One-line errors naming the file and the array.
+    Without the dims (before a run is loaded), every array's rows are checked against the rewards' C only."""
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(4)
+    except OSError as err:
+        raise InferenceError(f"{path}: cannot read the context file ({err.strerror or err})") from err
+    if magic[:2] != b"PK" and magic[:4] != b"\x93NUM":
+        raise InferenceError(f"{path}: not an .npz file (an .npz is a zip of .npy arrays, as numpy.savez writes: "
+                             f"{', '.join(TRANSITION_FIELDS)})")
     try:
         saved = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as err:
@@ -161,6 +170,11 @@ def read_context(path: Path, obs_dim: int, action_dim: int) -> dict:
     expected = {"observations": (length, obs_dim), "actions": (length, action_dim),
                 "next_observations": (length, obs_dim)}
     for name, shape in expected.items():
+        if shape[1] is None:  # dims not known yet: two-dimensional, C rows
+            if raw[name].ndim != 2 or raw[name].shape[0] != length:
+                raise InferenceError(f"{path}: {name} has shape {raw[name].shape}; expected (C, dim) with C = "
+                                     f"{length} transitions (from rewards)")
+            continue
         if raw[name].shape != shape:
             raise InferenceError(f"{path}: {name} has shape {raw[name].shape}; expected {shape} (C = {length} "
                                  "transitions, from rewards)")
@@ -175,6 +189,7 @@ def infer_context(run_dir: Path, context_file: Path, quantile: float = QUANTILE,
     """The training task that best explains a user's context, its score, and whether it is unknown."""
     if not 0.0 < quantile < 1.0:
         raise InferenceError(f"quantile must be in (0, 1), got {quantile!r}")
+    read_context(Path(context_file))  # a bad file: one line now, not after the run has loaded
     run = load_run(run_dir)
     family = run.family
     spec = run.method.spec

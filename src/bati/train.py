@@ -15,6 +15,7 @@ with the same keys are evaluated with their inference too, into their own run di
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -137,6 +138,12 @@ def _train_claimed(resolved: list[ResolvedRun], companions: list[list[ResolvedRu
         evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length, family=inputs.family,
                               workers=config.eval_workers)
     runs = [SeedRun.open(run, trainer, group) for run, group in zip(resolved, companions)]
+    records = [r.out / "eval.json" for r in runs] + [c.config.out_dir / "eval.json" for g in companions for c in g]
+    if all(r.step >= config.steps for r in runs) and all(path.is_file() for path in records):
+        evaluator.close()  # finished before this call: a rerun that trains nothing rewrites nothing
+        for sink in (sink for run in runs for sink in run.sinks):
+            sink.close()
+        return [json.loads((r.out / "eval.json").read_text()) for r in runs]
     followed = {c.method for run in runs for c in run.companions}
     modes = {c.config.method: evaluator.inferring_with(inputs.with_method(c).trainer().method)
              for group in companions for c in group if c.config.method in followed}

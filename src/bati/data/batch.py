@@ -310,6 +310,18 @@ class Collection:
                        n_context_episodes=self.n_context_episodes, zoo_dir=zoo_dir, progress=progress,
                        tasks=self.tasks, experts=self.experts, check_only=check_only)
 
+    def check_fits(self) -> None:
+        """ValueError (one line) where its sizes cannot be held in memory or on the data root's disk
+        (`bati.data.collect.check_fits`); nothing to check for a collection already on disk."""
+        from bati.data.collect import check_fits, scale_sizes
+
+        if (store.collection_dir(self.root, self.family, self.scale, self.seed, self.noise, self.tasks, self.experts)
+                / store.MANIFEST).is_file():
+            return
+        default_n, default_ctx = scale_sizes(self.family, self.scale)
+        check_fits(self.family, default_n if self.n_episodes is None else self.n_episodes,
+                   default_ctx if self.n_context_episodes is None else self.n_context_episodes, self.tasks, self.root)
+
     def ensure(self, progress: bool = True, zoo_dir: str | Path | None = None) -> FamilyData:
         """Collect it if missing, then load it."""
         self.collect(progress, zoo_dir)

@@ -28,7 +28,7 @@ from bati.data import store
 from bati.data.plan import OTHER_FRACTION, PLAN_STREAM, DatasetPlan, Plan, make_plan
 from bati.envs import FAMILY_NAMES, TaskFamily, TaskSplit, as_family, get_family
 from bati.envs.rollout import ONE_THREAD_ENV, LockstepEnvs
-from bati.experts.zoo import check_kind
+from bati.experts.kinds import check_kind, experts_label
 from bati.io import atomic_write_json, check_directory, git_commit, hold_lock
 
 # Episodes per training task and per context dataset. `paper`: the family's own size
@@ -48,6 +48,58 @@ def scale_sizes(family: TaskFamily, scale: str) -> tuple[int, int]:
     record = family.record
     sizes = {k: getattr(record, v) if isinstance(v, str) else v for k, v in SCALES[scale].items()}
     return int(sizes["n_episodes"]), int(sizes["n_context_episodes"])
+
+
+def check_fits(family: TaskFamily, n_episodes: int, n_context_episodes: int, tasks: TaskSplit, root) -> None:
+    """ValueError (one line: the setting, the estimate and what the machine has) where a collection of these sizes
+    cannot be held in memory (a run loads it whole) or written to the data root's disk, before anything is
+    allocated or written. Estimate: float32 observations, next observations, actions and rewards and an int32
+    collector per transition (the loaded arrays; Minari's files on disk take about as much)."""
+    obs_dim, action_dim = _env_dims(family)
+    episodes = tasks.n_train * n_episodes + 2 * tasks.n_test * n_context_episodes
+    needed = episodes * family.record.episode_length * 4 * (2 * obs_dim + action_dim + 2)
+    existing = next(p for p in (Path(root).absolute(), *Path(root).absolute().parents) if p.exists())
+    for what, have in (("memory", available_memory()), ("disk space under the data root", shutil.disk_usage(existing).free)):
+        if have is not None and needed > have:
+            raise ValueError(f"{n_episodes:,} episodes per training task and {n_context_episodes:,} per context dataset "
+                             f"make ~{_size(needed)} of {family.name} data; this machine has {_size(have)} of {what}: "
+                             "lower --episodes-per-task / --context-episodes (or the scale)")
+
+
+_DIMS: dict[tuple[str, int], tuple[int, int]] = {}
+
+
+def _env_dims(family: TaskFamily) -> tuple[int, int]:
+    """(obs_dim, action_dim) of the family's env, made once per process (plans check many cells)."""
+    key = (family.name, family.record.version)
+    if key not in _DIMS:
+        probe = family.make_env(family.sample_tasks(1, seed=0)[0], 0.0)
+        _DIMS[key] = (probe.observation_space.shape[0], probe.action_space.shape[0])
+        probe.close()
+    return _DIMS[key]
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux: MemAvailable), None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if n < 1024 or unit == "TB":
+            return f"{n:,.1f} {unit}" if unit != "B" else f"{n:.0f} B"
+        n /= 1024
+    return f"{n:,.1f} PB"
 
 
 def check_supported(family: TaskFamily) -> None:
@@ -116,16 +168,20 @@ def collect(
     default_n, default_ctx = scale_sizes(fam, scale)
     n_episodes = default_n if n_episodes is None else int(n_episodes)
     n_context_episodes = default_ctx if n_context_episodes is None else int(n_context_episodes)
+    check_integer("n_episodes", n_episodes)
+    check_integer("n_context_episodes", n_context_episodes)
     target = store.collection_dir(root, fam, scale, seed, noise, tasks, experts)
+    if not (target / store.MANIFEST).is_file():
+        check_fits(fam, n_episodes, n_context_episodes, tasks, root)
 
-    cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks, experts)
+    cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks, experts, zoo_dir)
     if cached is not None:
         return None if check_only else CollectResult(target, cached, True, time.perf_counter() - start)
     check_directory(target.parent, "the data directory")  # a file, or not writable: say so before any work
     if check_only:
         return None
 
-    plan = make_plan(fam, seed, n_episodes, n_context_episodes, tasks)
+    plan = make_plan(fam, seed, n_episodes, n_context_episodes, tasks, ties=collector_ties(experts))
     n_chunks = -(-plan.n_episodes // CHUNK)
     workers = min(default_workers() if workers is None else workers, n_chunks)
     if fam.name not in FAMILY_NAMES and not _from_plugin(fam.name):  # spawned workers would not know it
@@ -150,7 +206,8 @@ def collect(
     # one writer per collection: a second process fails at once naming the first (its pid, host)
     with hold_lock(store.lock_path(target), f"the collection {target}"):
         store.remove_stale_partials(target)
-        cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks, experts)
+        cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks, experts,
+                         zoo_dir)
         if cached is not None:  # another process finished the same collection meanwhile
             return CollectResult(target, cached, True, time.perf_counter() - start)
         if target.exists():  # no manifest: an incomplete or foreign directory; start over
@@ -202,7 +259,7 @@ def collect(
                 tmp.rename(target)
             except OSError:  # a concurrent collection finished first: keep its (identical) data
                 existing = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes,
-                                   tasks, experts)
+                                   tasks, experts, zoo_dir)
                 if existing is None:
                     raise
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -230,13 +287,14 @@ def collection_settings(family: TaskFamily, scale: str, seed: int, noise: float,
                         n_context_episodes: int, tasks: TaskSplit, zoo_dir, experts: str = "conditioned") -> dict:
     """Everything that decides a collection's content, in one place of its manifest: with the same
     settings (and the same expert, by its sha256) a collection is reproduced file for file. (Per-task
-    experts add `experts`; a collection by the conditioned expert records none, as before they existed.)"""
+    experts add `experts` and `ties`; a collection by the conditioned expert records neither, as before they
+    existed.)"""
     from bati.experts.per_task import PER_TASK_DIR
     from bati.experts.zoo import ZOO_DIR
 
     entry = Path(zoo_dir or ZOO_DIR) / family.name
     actor = entry / PER_TASK_DIR / "actors.msgpack" if experts == "per-task" else entry / "actor.msgpack"
-    kind = {"experts": experts} if experts != "conditioned" else {}
+    kind = {"experts": experts, "ties": collector_ties(experts)} if experts != "conditioned" else {}
     return {**kind, "family": family.name, "scale": scale, "seed": seed, "noise": noise, "n_episodes": n_episodes,
             "n_context_episodes": n_context_episodes, "episode_length": family.record.episode_length, "chunk": CHUNK,
             "other_fraction": OTHER_FRACTION, "task_split": tasks.record(),
@@ -267,9 +325,15 @@ def load_expert(family: TaskFamily, zoo_dir: str | Path | None = None, experts: 
     return _EXPERTS[key]
 
 
+def collector_ties(experts: str) -> str:
+    """How a collection picks among tied collectors (`bati.data.plan`): per-task experts differ, so "drawn"."""
+    return "drawn" if experts == "per-task" else "first"
+
+
 def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks=None,
-            experts="conditioned") -> dict | None:
-    """The manifest of a complete collection at `target`, None if there is none."""
+            experts="conditioned", zoo_dir=None) -> dict | None:
+    """The manifest of a complete collection at `target`, None if there is none; ValueError (one line) for one
+    made with other sizes, or, by per-task experts, with other experts or another rule for tied collectors."""
     if not (target / store.MANIFEST).is_file():
         return None
     manifest = store.read_manifest(target, fam, scale, seed, noise, root, tasks, experts)
@@ -280,6 +344,15 @@ def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episode
             f"{target} holds {sizes[0]} episodes per training task and {sizes[1]} per context dataset, "
             f"not the requested {n_episodes} / {n_context_episodes}; delete it or give another data root"
         )
+    if experts == "per-task":  # per-task experts are retrained: their old data must not pass for the new
+        saved = manifest.get("settings", {})
+        now = collection_settings(fam, scale, seed, noise, n_episodes, n_context_episodes, tasks or TaskSplit(),
+                                  zoo_dir, experts)
+        for key, what in (("expert_sha256", "by other per-task experts"), ("ties", "with the first of tied "
+                                                                          "collectors for every episode")):
+            if now[key] is not None and saved.get(key) != now[key]:
+                raise ValueError(f"{target} was collected {what} than this bati's (its manifest's settings.{key}: "
+                                 f"{saved.get(key)!r}); delete it or give another data root")
     return manifest
 
 
@@ -441,7 +514,7 @@ def run_collection(
                 _write(family, plan, d, buffers.pop(d.name), noise, out_dir, base_meta)
                 write_s += time.perf_counter() - write_start
 
-    bar = _progress(progress, f"{family.name} data")
+    bar = _progress(progress, f"{family.name} data ({experts_label(experts)})")
     with bar:
         task_id = bar.add_task("collect", total=len(jobs) * family.record.episode_length)
         if workers == 1:

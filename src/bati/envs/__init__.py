@@ -7,11 +7,13 @@
 
 from __future__ import annotations
 
+import warnings
+
 import gymnasium as gym
 
 from bati.envs.base import (EPISODE_LENGTH, FamilyRecord, Task, TaskEnvMixin, TaskError, TaskFamily, TaskSplit,
                              scalar_task)
-from bati.errors import BatiError
+from bati.errors import BatiError, BatiWarning
 
 # family name -> (module, family class, env class); modules are imported lazily so that
 # `import bati.envs` stays cheap and PointGoal works without loading MuJoCo.
@@ -58,7 +60,11 @@ def _load_plugins() -> None:
     from importlib.metadata import entry_points
 
     for entry in entry_points(group=PLUGIN_GROUP):
-        entry.load()()
+        try:
+            entry.load()()
+        except Exception as err:  # one broken package must not hide every other family
+            warnings.warn(f"the {PLUGIN_GROUP} entry point {entry.name!r} ({entry.value}) failed and its families are "
+                          f"left out: {type(err).__name__}: {err}", BatiWarning, stacklevel=2)
 
 
 def family_names() -> tuple[str, ...]:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -66,11 +67,15 @@ SOURCES = (
            ("experts=per-task",), data="per-task experts"),
     Source("paper, per-task experts' data (one SAC per training task, App. C.2)", Path("results/paper/experiments"),
            "paper", ("experts=per-task",), data="per-task experts"),
+    # HalfCheetahDir's per-task cells on its first experts (40k transitions each, a third of the paper's Oracle)
+    Source("cpu, per-task experts of 40k transitions (HalfCheetahDir's first experts, since retrained)",
+           Path("results/cpu/experts-40k"), "cpu", ("experts=per-task",), data="per-task experts, 40k"),
     Source("cpu, Table 3's dataset size read in total (50 episodes per training task), our expert's data",
            Path("results/cpu/total-data"), "cpu", ("episodes_per_task=50",), data="total size"),
-    Source("cpu, Table 3's dataset size read in total (50 episodes per training task), per-task experts' data",
+    Source("cpu, Table 3's dataset size read in total (50 episodes per training task), per-task experts' data "
+           "(HalfCheetahDir's 40k experts)",
            Path("results/cpu/total-data"), "cpu", ("episodes_per_task=50", "experts=per-task"),
-           data="total size, per-task experts"),
+           data="total size, per-task experts, 40k"),
 )
 
 
@@ -156,6 +161,29 @@ def _decides(p: tuple[float, float, float]) -> int:
     return 1 if p[1] > 0.5 else -1 if p[2] < 0.5 else 0
 
 
+@dataclass
+class Tally:
+    """Which of a claim's comparisons decide for the paper (`holds`), which intervals hold chance (`undecided`)
+    and which decide against it: a "partly" names them."""
+
+    holds: list[str] = field(default_factory=list)
+    undecided: list[str] = field(default_factory=list)
+    against: list[str] = field(default_factory=list)
+
+    def add(self, name: str, decision: int) -> int:
+        {1: self.holds, 0: self.undecided, -1: self.against}[decision].append(name)
+        return decision
+
+    def text(self) -> str:
+        parts = [(label, names) for label, names in (("holds", self.holds), ("undecided", self.undecided),
+                                                    ("against", self.against)) if names]
+        return "; ".join(f"{label}: {', '.join(names)}" for label, names in parts)
+
+    def counts(self) -> str:
+        return ", ".join(f"{len(names)} {label}" for label, names in (
+            ("hold", self.holds), ("undecided", self.undecided), ("against", self.against)) if names)
+
+
 def _verdict(decisions: list[int], wanted: int) -> str:
     if not decisions:
         return "not tested"
@@ -175,7 +203,7 @@ def best_on_p_test(records: list[Record], families: tuple[str, ...],
     """C1 / C7 / C8 / C9: per family, P(method > baseline) on p_test for every baseline that ran (method: BATI,
     or C9's BATI-R)."""
     name = method.upper()
-    lines, decisions, tested = [], [], 0
+    lines, decisions, tested, tally = [], [], 0, Tally()
     for family in families:
         subject = _scores(records, method, family)
         parts, family_decisions = [], []
@@ -187,7 +215,7 @@ def best_on_p_test(records: list[Record], families: tuple[str, ...],
                 parts.append(f"{baseline} {other.mean():.2f} ({len(other)} seed(s))")
                 continue
             p = _p(subject, other)
-            family_decisions.append(_decides(p))
+            family_decisions.append(tally.add(f"{baseline} on {family}", _decides(p)))
             parts.append(f"P({name} > {baseline}) {_fmt_p(p)}")
         if not parts:
             continue
@@ -197,8 +225,8 @@ def best_on_p_test(records: list[Record], families: tuple[str, ...],
             tested += 1
             decisions.append(1 if all(d == 1 for d in family_decisions) else -1 if -1 in family_decisions else 0)
     if tested < len(families):
-        return lines, "not tested" if not tested else _partial(decisions)
-    return lines, _verdict(decisions, len(families))
+        return lines, "not tested" if not tested else _partial(decisions), tally
+    return lines, _verdict(decisions, len(families)), tally
 
 
 def _partial(decisions: list[int]) -> str:
@@ -208,7 +236,7 @@ def _partial(decisions: list[int]) -> str:
 def fall_on_p_test(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
     """C2: a baseline's p_test - p_train (normalised) against BATI's, stratified over the families where both have
     MIN_SEEDS seeds (a family with fewer is named, not pooled: it would cut every family to its seeds)."""
-    lines, decisions, covered = [], [], set()
+    lines, decisions, covered, tally = [], [], set(), Tally()
     for baseline in BASELINES:
         ran = _both(records, ("bati", baseline), families)
         both = _both(records, ("bati", baseline), families, MIN_SEEDS) or ran
@@ -218,20 +246,25 @@ def fall_on_p_test(records: list[Record], families: tuple[str, ...]) -> tuple[li
         counted = f"{len(both)} {'family' if len(both) == 1 else 'families'}"
         if len(both) < len(families):
             counted += ": " + ", ".join(both)
-        head = f"{baseline} ({counted}): p_test - p_train {other.mean():+.2f} vs BATI {bati.mean():+.2f}"
+        levels = {m: tuple(_stratified(records, m, both, key).mean() for key in ("p_train", "p_test"))
+                  for m in ("bati", baseline)}
+        head = (f"{baseline} ({counted}): p_train {levels[baseline][0]:.2f} -> p_test {levels[baseline][1]:.2f} "
+                f"(change {other.mean():+.2f}) vs BATI {levels['bati'][0]:.2f} -> {levels['bati'][1]:.2f} "
+                f"({bati.mean():+.2f})")
         if not _seeds_ok(bati, other):
             lines.append(head + f" ({min(len(bati), len(other))} seed(s) per family)")
             continue
         if len(both) < len(ran):
             head += f" (not pooled, fewer than {MIN_SEEDS} seeds: {', '.join(f for f in ran if f not in both)})"
         p = _p(bati, other)
-        decisions.append(_decides(p))
+        decisions.append(tally.add(baseline if len(both) == len(families) else f"{baseline} on {', '.join(both)}",
+                                   _decides(p)))
         covered.update(both)
         train = _p(_stratified(records, "bati", both, "p_train"), _stratified(records, baseline, both, "p_train"))
         lines.append(head + f"; P(BATI falls less) {_fmt_p(p)}; on p_train P(BATI > {baseline}) {_fmt_p(train)}")
     if decisions and len(covered) < len(families):  # a claim about every family holds at most partly on some
-        return lines, _partial(decisions)
-    return lines, _verdict(decisions, len(decisions))
+        return lines, _partial(decisions), tally
+    return lines, _verdict(decisions, len(decisions)), tally
 
 
 def _both(records: list[Record], methods: tuple[str, ...], families: tuple[str, ...], seeds: int = 1) -> tuple[str, ...]:
@@ -243,18 +276,18 @@ def recon_below(records: list[Record], families: tuple[str, ...]) -> tuple[list[
     """C3: P(BATI > Recon) on p_test family by family, as C1 and C8 decide theirs (Table 4 ranks per family), and
     the pooled figure over the families where both have MIN_SEEDS seeds (stratified) as one more line; the
     per-family intervals decide."""
-    lines, verdict = best_on_p_test(records, families, ("recon",))
+    lines, verdict, tally = best_on_p_test(records, families, ("recon",))
     both = _both(records, ("bati", "recon"), families, MIN_SEEDS)
     if len(both) > 1:
         bati, recon = _stratified(records, "bati", both), _stratified(records, "recon", both)
         lines.append(f"pooled over {', '.join(both)}: BATI {bati.mean():.2f}, Recon {recon.mean():.2f}; "
                      f"stratified P(BATI > Recon) {_fmt_p(_p(bati, recon))}")
-    return lines, verdict
+    return lines, verdict, tally
 
 
 def noise_hurts_baselines(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
     """C4: the change of p_test from eps = 0 to the largest eps, BATI's against each baseline's."""
-    lines, decisions, bati_holds, covered = [], [], [], set()
+    lines, decisions, bati_holds, covered, tally = [], [], [], set(), Tally()
     for family in families:
         levels = sorted({r.noise for r in records if r.family == family})
         if len(levels) < 2:
@@ -273,6 +306,7 @@ def noise_hurts_baselines(records: list[Record], families: tuple[str, ...]) -> t
         if _seeds_ok(bati):
             value, lo, hi = iqm_interval(bati, reps=REPS)
             bati_holds.append(hi >= 0.0)
+            tally.add(f"BATI holds on {family}", 1 if hi >= 0.0 else -1)
             parts.append(f"BATI eps {low:g} -> {high:g}: {value:+.2f} [{lo:+.2f}, {hi:+.2f}]")
         else:
             parts.append(f"BATI eps {low:g} -> {high:g}: {bati.mean():+.2f} ({len(bati)} seed(s))")
@@ -286,27 +320,27 @@ def noise_hurts_baselines(records: list[Record], families: tuple[str, ...]) -> t
                 continue
             if _seeds_ok(bati, other):
                 p = _p(bati, other)
-                decisions.append(_decides(p))
+                decisions.append(tally.add(f"{baseline} on {family}", _decides(p)))
                 covered.add(family)
                 parts.append(f"{baseline} {other.mean():+.2f}, P(BATI changes less) {_fmt_p(p)}")
             else:
                 parts.append(f"{baseline} {other.mean():+.2f} ({len(other)} seed(s))")
         lines.append(f"{family}: " + "; ".join(parts))
     if not decisions:
-        return lines, "not tested"
+        return lines, "not tested", tally
     wins = sum(d == 1 for d in decisions)
     if wins == len(decisions) and all(bati_holds) and len(covered) == len(families):
-        return lines, "reproduced"
-    return lines, "partly" if wins or any(bati_holds) else "not reproduced"
+        return lines, "reproduced", tally
+    return lines, "partly" if wins or any(bati_holds) else "not reproduced", tally
 
 
 def longer_contexts_help(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
     """C5: P(return at the longest context > at the shortest) for BATI, beside the baselines."""
     lengths = sorted({r.context_length for r in records if r.context_length is not None})
     if len(lengths) < 2:
-        return [], "not tested"
+        return [], "not tested", Tally()
     short, long = lengths[0], lengths[-1]
-    lines, verdict = [], "not tested"
+    lines, verdict, tally = [], "not tested", Tally()
     for method in ("bati",) + BASELINES:
         a = _scores(records, method, families[0], "p_test_return", context_length=short)
         b = _scores(records, method, families[0], "p_test_return", context_length=long)
@@ -318,32 +352,51 @@ def longer_contexts_help(records: list[Record], families: tuple[str, ...]) -> tu
             p = _p(b, a)
             lines.append(f"{method} C = {' / '.join(map(str, lengths))}: {means}; P(C={long} > C={short}) {_fmt_p(p)}")
             if method == "bati":
-                verdict = {1: "reproduced", 0: "not reproduced", -1: "not reproduced"}[_decides(p)]
+                decision = tally.add(f"BATI C={long} > C={short}", _decides(p))
+                verdict = {1: "reproduced", 0: "not reproduced", -1: "not reproduced"}[decision]
         else:
             lines.append(f"{method} C = {' / '.join(map(str, lengths))}: {means} ({len(a)} seed(s))")
-    return lines, verdict
+    return lines, verdict, tally
 
 
-def only_bati_positive(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str]:
-    """C6: the IQM p_test return (raw: its sign is the claim) of BATI above 0, the baselines' below."""
-    lines, positive, tested = [], {}, True
-    for method in ("bati",) + BASELINES:
+def only_bati_positive(records: list[Record], families: tuple[str, ...]) -> tuple[list[str], str, Tally]:
+    """C6: the IQM p_test return (raw: its sign is the claim) of BATI above 0 and of every other method that ran
+    below it. BATI's own test-time rules (BATI-R, BATI-auto) and the oracle (it is told the task) are shown, not
+    counted. A counted method whose interval lies above 0 refutes "only"; one whose interval holds 0, or with
+    fewer than MIN_SEEDS seeds, is undecided."""
+    lines, signs, tally = [], {}, Tally()
+    ran = sorted({r.method for r in records if r.family == families[0]},
+                 key=lambda m: (m != "bati", m not in BASELINES, m))
+    for method in ran:
         returns = _scores(records, method, families[0], "p_test_return")
         if not len(returns):
             continue
+        shown = " (shown, not counted)" if method in NOT_COUNTED_IN_C6 else ""
         if _seeds_ok(returns):
             value, lo, hi = iqm_interval(returns, reps=REPS)
-            positive[method] = 1 if lo > 0 else -1 if hi < 0 else 0
-            lines.append(f"{method}: IQM {value:.2f} [{lo:.2f}, {hi:.2f}]")
+            signs[method] = 1 if lo > 0 else -1 if hi < 0 else 0
+            lines.append(f"{method}: IQM {value:.2f} [{lo:.2f}, {hi:.2f}]{shown}")
         else:
-            tested = False
-            lines.append(f"{method}: {returns.mean():.2f} ({len(returns)} seed(s))")
-    others = [v for k, v in positive.items() if k != "bati"]
-    if not tested or "bati" not in positive or not others:  # BATI alone: "only BATI" compares with nothing
-        return lines, "not tested"
-    if positive["bati"] == 1 and all(v == -1 for v in others):
-        return lines, "reproduced"
-    return lines, "partly" if positive["bati"] == 1 or any(v == -1 for v in others) else "not reproduced"
+            signs[method] = None
+            lines.append(f"{method}: {returns.mean():.2f} ({len(returns)} seed(s)){shown}")
+    others = {k: v for k, v in signs.items() if k != "bati" and k not in NOT_COUNTED_IN_C6}
+    if signs.get("bati") is None or not any(v is not None for v in others.values()):
+        return lines, "not tested", tally  # BATI alone: "only BATI" compares with nothing
+    tally.add("BATI positive", signs["bati"])
+    for method, sign in others.items():  # the paper's side of a method is "not positive": below 0
+        name = {None: f"{method} (fewer than {MIN_SEEDS} seeds)", 1: f"{method} positive", -1: f"{method} negative",
+                0: f"{method}'s sign"}[sign]
+        tally.add(name, 0 if sign is None else -sign)
+    if signs["bati"] == 1 and all(v == -1 for v in others.values()):
+        return lines, "reproduced", tally
+    if signs["bati"] != 1 or any(v == 1 for v in others.values()):
+        return lines, "not reproduced", tally
+    return lines, "partly", tally
+
+
+NOT_COUNTED_IN_C6 = ("bati-r", "bati-auto", "oracle")
+"""Methods C6 shows beside BATI without counting them: BATI's own test-time rules, and the oracle, which is told
+the task."""
 
 
 @dataclass(frozen=True)
@@ -353,7 +406,7 @@ class Claim:
     source: str
     experiment: str
     families: tuple[str, ...]
-    test: Callable[[list[Record], tuple[str, ...]], tuple[list[str], str]]
+    test: Callable[[list[Record], tuple[str, ...]], tuple[list[str], str, Tally]]
     methods: tuple[str, ...] = ("bati",) + BASELINES
     """The methods it compares, its subject first: their runs' convergence is reported beside the verdict."""
     levels: int = 1
@@ -408,6 +461,8 @@ class Finding:
     """The compared cells with >= MIN_SEEDS seeds whose drift interval holds 0."""
     thin: list[str] = field(default_factory=list)
     """Those of `families` where no compared pair has MIN_SEEDS seeds yet: runs, but no ranking."""
+    tally: Tally = field(default_factory=Tally)
+    """Which comparisons hold, are undecided or go against the claim (what a "partly" rests on)."""
 
 
 def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> list[Finding]:
@@ -420,7 +475,7 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
             records = [r for r in records if r.family in claim.families]
             if not records:
                 continue
-            lines, verdict = claim.test(records, claim.families)
+            lines, verdict, tally = claim.test(records, claim.families)
             compared = compared_families(records, claim)
             ranked = compared_families(records, claim, seeds=MIN_SEEDS)
             moving, flat = convergence([r for r in records if r.family in compared], claim.methods)
@@ -428,7 +483,7 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
                                     sorted({short_commit(r.commit) for r in records if r.commit}),
                                     sorted({r.device for r in records if r.device}),
                                     jobs_wall_time((r.job, r.wall_time_s) for r in records), moving, flat,
-                                    [f for f in compared if f not in ranked]))
+                                    [f for f in compared if f not in ranked], tally))
     return findings
 
 
@@ -509,7 +564,11 @@ def every_scale(findings: list[Finding], claim: Claim) -> str:
         count = len(finding.moving)
         return f"; {count} cell{'s' if count > 1 else ''} still moving" if count else ""
 
-    return "; ".join(f"{_scale_name(f)}: {f.verdict} ({coverage(f)}{moving(f)})"
+    def decided(finding: Finding) -> str:
+        counts = finding.tally.counts()
+        return f"comparisons: {counts}; " if finding.verdict == "partly" and counts else ""
+
+    return "; ".join(f"{_scale_name(f)}: {f.verdict} ({decided(f)}{coverage(f)}{moving(f)})"
                      for f in _tested(findings, claim)) or "-"
 
 
@@ -545,6 +604,8 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
     for claim in CLAIMS:
         verdict, scale = overall(findings, claim)
         tested = [f for f in _tested(findings, claim) if not f.source.data]  # the verdict's own scale
+        counts = tested[-1].tally.counts() if tested and verdict == "partly" else ""
+        verdict = f"{verdict} ({counts})" if counts else verdict
         lines.append(f"| {claim.name}: {claim.text} | {claim.source} | **{verdict}** | {scale} | "
                      f"{converged_text(tested[-1], short=True) if tested else '-'} | {every_scale(findings, claim)} |")
     for claim in CLAIMS:
@@ -557,6 +618,8 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
                          f"device(s) {', '.join(f.devices) or '?'}; summed wall time {f.wall_time_s / 60:.1f} min)")
             lines.append("")
             lines += [f"- {line}" for line in f.lines] or ["- (no comparison possible)"]
+            if f.verdict in ("partly", "not reproduced") and f.tally.text():
+                lines.append(f"- decided: {f.tally.text()}")
             lines.append(f"- converged: {converged_text(f)}")
             lines.append("")
     return "\n".join(lines).rstrip() + "\n"
@@ -571,8 +634,13 @@ def write_claims(root: Path = Path("."), out: Path | None = None) -> tuple[Path,
     if not (Path(root) / "results").is_dir():  # a mistyped --root would give a page of "not tested" claims
         raise PathError(f"no results/ directory under {root}: --root is the project directory whose results/ "
                         "holds the experiments")
-    findings = decide(root)
+    from bati.io import check_directory
+
     out = out or Path(root) / "docs" / "claims.md"
+    check_directory(out.parent, "the claims page's folder")  # before minutes of intervals, not after
+    if out.exists() and not os.access(out, os.W_OK):
+        raise PathError(f"{out} is not writable")
+    findings = decide(root)
     command = "bati claims" + (f" --root {root}" if Path(root) != Path(".") else "")
     atomic_write_text(out, claims_markdown(findings, command))
     return out, [(claim, *overall(findings, claim)) for claim in CLAIMS]

@@ -38,8 +38,8 @@ class ExperimentJob:
     settings: tuple[str, ...] = ()
     """KEY=VALUE TrainConfig settings for every cell, e.g. `steps=12000` (not those the experiment sets)."""
     out_dir: Path | None = None
-    """Results directory shared by the experiments (default: results/<scale>/experiments); the report goes
-    to OUT_DIR/<name>/."""
+    """Results directory shared by the experiments (default: runs/experiments/<scale>; the committed studies:
+    --out-dir results/<scale>/experiments); the report goes to OUT_DIR/<name>/."""
     data_root: Path = Path("data")
     zoo_dir: Path | None = None
     """Where the experts of the families are (default: the shipped ones); a family of your own's
@@ -96,13 +96,14 @@ def run_experiment_job(job: ExperimentJob, show_progress: bool = True,
     others = tuple(f for f in job.families if f not in paper_families)
     whole = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=settings, data_root=job.data_root,
                             families=paper_families + others if others else ())
-    command = job.command_line(whole=True)
+    command = job.command_line()  # what reruns exactly this command's cells
     if job.report_only:  # reads finished cells only, so it needs no lock: a sweep may be running
-        return ExperimentOutcome(experiment_report(whole, out / spec.name, command=command), out / spec.name)
+        return ExperimentOutcome(experiment_report(whole, out / spec.name, command=command, selection=plan),
+                                 out / spec.name)
     with record_lock(out, status_file(spec)):  # one process at a time runs and reports this experiment here
         result = run_experiment(plan, out, data_root=job.data_root, workers=job.workers, backend=job.backend,
                                 address=job.address, show_progress=show_progress, locked=True, on_probe=on_probe)
-        report = experiment_report(whole, out / spec.name, command=command)
+        report = experiment_report(whole, out / spec.name, command=command, selection=plan)
     return ExperimentOutcome(report, out / spec.name, result, {**result.sweep.errors, **result.probe_errors})
 
 

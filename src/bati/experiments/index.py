@@ -21,16 +21,19 @@ diff shows what moved); `pack_results` packs finished runs' metrics.jsonl (bati.
 from __future__ import annotations
 
 import json
+import os
 import re
+import warnings
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
+from bati.envs import FamilyUnavailable
 from bati.errors import PathError
 from bati.experiments.report import cell_records, experiment_report
 from bati.experiments.specs import MAIN_METHODS, SCALES, SPECS, Plan, get_spec, plan_experiment
 from bati.io import atomic_write_text, pack_jsonl, short_commit
-from bati.report.runs import RunResult, find_eval_files, jobs_wall_time
+from bati.report.runs import ReportWarning, RunResult, find_eval_files, jobs_wall_time
 
 RESULTS = Path("results")
 NOTES = RESULTS / "notes.md"
@@ -112,15 +115,18 @@ negatives drawn from any task, the default before 2026-11-25; ER-TRL's first for
 unbounded latents; docs/methods.md)."""
 
 DECLARED = (
+    Study(RESULTS / "cpu/experts-40k/main", "Table 4 on HalfCheetahDir with per-task experts of 40k transitions each "
+          "(a third of the paper's Oracle; the experts since retrained)", "main", "cpu", ("experts=per-task",),
+          methods=("bati", "bati-r", "recon", "focal", "unicorn", "csro", "oracle"), families=("HalfCheetahDir",)),
     Study(RESULTS / "cpu/experiments/main-ertrl-unbounded", "ER-TRL without the tanh on its latent (the paper's "
           "form)", "main", "cpu", ("ertrl.latent_activation=none",), methods=("er-trl",),
           out_dir=RESULTS / "cpu/experiments"),
     Study(RESULTS / "cpu/total-data/experts", "Table 3's dataset size read in total: 50 episodes per training "
-          "task on HalfCheetahDir instead of 1,000", "experts", "cpu", ("episodes_per_task=50",),
+          "task on HalfCheetahDir instead of 1,000 (per-task data: the 40k experts)", "experts", "cpu", ("episodes_per_task=50",),
           methods=("bati", "bati-r", "focal", "csro", "unicorn", "recon", "oracle"), families=("HalfCheetahDir",),
           data_root="data-total"),
     Study(RESULTS / "cpu/same-task-value/experts", "FOCAL with tasks of equal parameters as one task in its metric "
-          "loss (HalfCheetahDir's same-direction tasks are not pushed apart)", "experts", "cpu",
+          "loss (HalfCheetahDir's same-direction tasks are not pushed apart; the 40k per-task experts' data)", "experts", "cpu",
           ("focal.same_task=value",), methods=("focal",), families=("HalfCheetahDir",)),
     Study(RESULTS / "cpu/focal-distance/main", "FOCAL with the root-mean distance in its metric loss", "main", "cpu",
           ("focal.distance=root-mean",), methods=("focal",), families=("AntDir",), seeds=(0,)),
@@ -142,7 +148,8 @@ DECLARED = (
           command="bati sweep --methods bati bati-r recon no-context --settings steps=3000|12000 "
                   "--out-dir results/quick/pointgoal-convergence; bati report results/quick/pointgoal-convergence"),
     Study(RESULTS / "own-data/goalline", "Your own data: GoalLine through the Minari path (docs/own-data.md)",
-          command="python examples/own_data_goalline.py --steps 3000 --episodes 30 --seeds 0 1 2"),
+          command="python examples/own_data_goalline.py --out results/own-data/goalline --steps 3000 --episodes 30 "
+                  "--seeds 0 1 2"),
 )
 """The report folders that are not an experiment of a scale's experiments directory."""
 
@@ -185,23 +192,38 @@ class Summary:
 
 def summarise(study: Study, root: Path = Path(".")) -> Summary:
     """The study's numbers from its records: finished cells (of planned), commits, devices, wall time."""
+    plan = None
     if study.experiment is not None:
-        plan = study.plan(root)
+        try:
+            plan = study.plan(root)
+        except FamilyUnavailable:  # its family's extra is missing here (KuhnPoker: OpenSpiel): read what is there
+            pass
+    if plan is not None:
         runs = cell_records(plan)[1]
         planned, seeds = len(plan.cells), plan.seeds
+    elif study.experiment is not None:
+        families = {f for part in get_spec(study.experiment).parts for f in part.families}
+        runs = [r for r in _read_runs(root / study.cells_dir) if r.family in families]
+        planned, seeds = len(runs), tuple(sorted({r.seed for r in runs}))
     else:
-        runs = []
-        for path in find_eval_files(root / (study.runs or study.report.parent)):
-            try:
-                runs.append(RunResult.from_dict(json.loads(path.read_text()), path))
-            except (OSError, ValueError, TypeError, AttributeError):
-                continue
+        runs = _read_runs(root / (study.runs or study.report.parent))
         planned, seeds = len(runs), tuple(sorted({r.seed for r in runs}))
     commits = [r.commit for r in runs if r.commit]
     wall = jobs_wall_time(((r.path.parent.parent, r.method), r.total_wall_time()) for r in runs)
     return Summary(study, len(runs), planned, seeds, sorted({short_commit(c).removesuffix("-dirty") for c in commits}),
                    sum(r.uncommitted_changes for r in runs), Counter(_short_device(r.device) for r in runs if r.device),
                    wall / 60)
+
+
+def _read_runs(directory: Path) -> list[RunResult]:
+    """Every eval.json under `directory` as a RunResult; a damaged one is named (ReportWarning), not dropped silently."""
+    runs = []
+    for path in find_eval_files(directory):
+        try:
+            runs.append(RunResult.from_dict(json.loads(path.read_text()), path))
+        except (OSError, ValueError, TypeError, AttributeError) as err:
+            warnings.warn(f"skipping {path}: {err}", ReportWarning, stacklevel=2)
+    return runs
 
 
 def _short_device(device: str) -> str:
@@ -362,15 +384,19 @@ def with_headline(readme: str, headline: str) -> str:
 
 def write_results(root: Path = Path("."), readme: bool = True) -> list[Path]:
     """results/README.md, docs/results.md and (readme) the README's headline table; the files written."""
+    from bati.io import check_directory
+
     summaries = [summarise(s, root) for s in studies(root)]
-    atomic_write_text(root / INDEX, index_markdown(summaries, root))
-    atomic_write_text(root / RESULTS_PAGE, results_markdown(summaries, root))
-    written = [root / INDEX, root / RESULTS_PAGE]
+    pages = {root / INDEX: index_markdown(summaries, root), root / RESULTS_PAGE: results_markdown(summaries, root)}
     if readme:
-        path = root / README
-        atomic_write_text(path, with_headline(path.read_text(), headline_markdown(root)))
-        written.append(path)
-    return written
+        pages[root / README] = with_headline((root / README).read_text(), headline_markdown(root))
+    for path in pages:  # all the pages or none: every place is checked before the first is written
+        check_directory(path.parent, f"the folder of {path.name}", writable=True)
+        if path.exists() and not os.access(path, os.W_OK):
+            raise PathError(f"{path} is not writable: nothing was written")
+    for path, text in pages.items():
+        atomic_write_text(path, text)
+    return list(pages)
 
 
 def regenerate_reports(root: Path = Path(".")) -> list[Path]:
@@ -378,7 +404,12 @@ def regenerate_reports(root: Path = Path(".")) -> list[Path]:
     done = []
     for study in studies(root):
         if study.experiment is not None:
-            experiment_report(study.plan(root), root / study.report, command=study.command_line())
+            try:
+                plan = study.plan(root)
+            except FamilyUnavailable as err:  # its report stays as it is: say so, do the others
+                warnings.warn(f"{study.report}/report.md not rewritten: {err}", ReportWarning, stacklevel=2)
+                continue
+            experiment_report(plan, root / study.report, command=study.command_line())
             done.append(study.report)
     return done
 

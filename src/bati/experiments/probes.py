@@ -245,7 +245,15 @@ def likelihood_split(run_dir: Path, context_length: int = 200, seed: int = 0) ->
 
 
 def save_likelihood_split(run_dir: Path, context_length: int = 200, seed: int = 0) -> dict:
-    """`likelihood_split` of the run's last checkpoint, written to `<run>/likelihood.json` (atomically)."""
+    """`likelihood_split` of the run's last checkpoint, written to `<run>/likelihood.json` (atomically). A
+    context length under 1 or a run directory that cannot take the file: one line, before the run is loaded."""
+    from bati.checks import check_integer
+    from bati.io import check_directory
+
+    check_integer("context_length", context_length)
+    if not (Path(run_dir) / "config.json").is_file():
+        read_run_config(Path(run_dir))  # its own one-line error: not a run directory
+    check_directory(run_dir, "the run directory")  # read-only: say so now, not after the numbers are computed
     start = time.perf_counter()
     report = likelihood_split(run_dir, context_length, seed)
     report.update(context_length=context_length, seed=seed, **code_record(),

@@ -16,12 +16,14 @@ from __future__ import annotations
 import json
 import math
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from bati.config import family_of
 from bati.errors import BatiError
+from bati.experts.kinds import experts_label
 from bati.experiments.probes import probe_path, read_probe
 from bati.experiments.specs import Plan, Spec
 from bati.io import atomic_write_text, short_commit
@@ -30,7 +32,7 @@ from bati.report.build import (_csv_text, group_runs, group_title, method_order,
 from bati.report.build import table_markdown as group_table
 from bati.report.curves import save_figure
 from bati.report.likelihood import SOURCES, read_likelihood_split
-from bati.report.runs import RunResult, jobs_wall_time
+from bati.report.runs import ReportWarning, RunResult, jobs_wall_time
 from bati.report.tables import METHOD_LABELS
 
 CSV_FIELDS = ("row", "column", "n_seeds", "seeds", "mean", "std", "paper")
@@ -59,17 +61,22 @@ def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
     records, runs = [], []
     for cell in plan.cells:
         c = cell.config
+        path = c.out_dir / "eval.json"
+        if not path.is_file():  # not finished (yet)
+            continue
         try:
-            raw = json.loads((c.out_dir / "eval.json").read_text())
-            run = RunResult.from_dict(raw, c.out_dir / "eval.json")
-        except (OSError, ValueError, TypeError, AttributeError):
+            raw = json.loads(path.read_text())
+            run = RunResult.from_dict(raw, path)
+        except (OSError, ValueError, TypeError, AttributeError) as err:  # damaged: said, never dropped silently
+            warnings.warn(f"skipping {path}: {err}", ReportWarning, stacklevel=2)
             continue
         runs.append(run)
         base = {"method": c.method, "family": c.family, "seed": c.seed, "noise": f"{c.noise:g}",
                 "family_noise": f"{c.family} eps={c.noise:g}", "split": f"{c.n_train_tasks}/{c.n_test_tasks}",
                 "context_length": str(c.eval_context_length), "commit": run.commit, "device": run.machine,
                 "task_range": _task_range(c), "probe": "run", "family_probe": f"{c.family} run",
-                "family_experts": f"{c.family} {c.experts}", "wall_time_s": run.wall_time_s}
+                "family_experts": f"{c.family} {c.experts}", "wall_time_s": run.wall_time_s,
+                "experts_return": (run.reference_returns or {}).get("expert")}
         probes = plan.probes.get(cell.id, ())
         if not probes:
             split = read_likelihood_split(c.out_dir) if plan.spec.likelihood_split else None
@@ -120,6 +127,11 @@ def column_position(value: str) -> float | None:
         return float(numbers[-1]) if numbers else None
 
 
+PRE_IQL = "experts (Pre-IQL)"
+"""The paper's "Oracle (Pre-IQL)" row: the data-collecting experts' own return on the test tasks (each run's
+expert reference), not an IQL agent told the task (our `oracle` row)."""
+
+
 def table_rows(spec: Spec, records: list[dict], metric: str) -> tuple[list[str], list[str], list[dict]]:
     """Rows, columns and one entry per (row, column): mean, std and seeds of `metric`, paper value."""
     rows = sorted({r[spec.rows] for r in records}, key=method_order if spec.rows == "method" else _sort_key)
@@ -137,6 +149,14 @@ def table_rows(spec: Spec, records: list[dict], metric: str) -> tuple[list[str],
                             "mean": float(np.mean(values)) if values else math.nan,
                             "std": float(np.std(values)) if values else math.nan,
                             "paper": paper.get(row, {}).get(column, "")})
+    if PRE_IQL in paper and metric == "p_test_return":  # the experts' own return: the runs' reference
+        rows.append(PRE_IQL)
+        for column in columns:
+            values = [r["experts_return"] for r in records if r[spec.columns] == column
+                      and r.get("experts_return") is not None and math.isfinite(r["experts_return"])]
+            entries.append({"row": PRE_IQL, "column": column, "n_seeds": int(bool(values)), "seeds": "",
+                            "mean": float(np.mean(values)) if values else math.nan, "std": 0.0,
+                            "paper": paper[PRE_IQL].get(column, "")})
     return rows, columns, entries
 
 
@@ -355,8 +375,20 @@ def plot_tsne(plan: Plan, path: Path, methods=("bati", "recon"), paths_for: int 
     return True
 
 
-def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
-    """Write the experiment's report.md, table.csv and figures into out_dir; see the module docstring."""
+def cells_line(plan: Plan, selection: Plan | None, n_done: int) -> str:
+    """How many cells are finished: of the command's selection, and of the whole experiment the tables cover."""
+    line = f"- cells finished: {n_done} of {len(plan.cells)}; seeds {list(plan.seeds)}"
+    if selection is None or {c.id for c in selection.cells} == {c.id for c in plan.cells}:
+        return line
+    ids = {c.id for c in selection.cells}
+    mine = sum((c.config.out_dir / "eval.json").is_file() for c in plan.cells if c.id in ids)
+    return (f"- cells finished: {mine} of the command's {len(selection.cells)}; the tables hold every finished cell "
+            f"of the experiment in this folder: {n_done} of {len(plan.cells)}; seeds {list(plan.seeds)}")
+
+
+def experiment_report(plan: Plan, out_dir: Path, command: str = "", selection: Plan | None = None) -> dict:
+    """Write the experiment's report.md, table.csv and figures into out_dir; see the module docstring. `plan`:
+    every cell the report covers; `selection`: the cells `command` runs (default: all of `plan`'s)."""
     spec = plan.spec
     records, runs = cell_records(plan)
     out_dir = Path(out_dir)
@@ -387,9 +419,14 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
                         "stratified-bootstrap intervals, as `bati report`)\n")
         sections += [group_table(g, method_rows(g), group_title(g, [])) for g in seeded]
     figures = []
-    if spec.metric == "p_test_return" and plot_profile(runs, out_dir / "profile.png",
-                                                       f"{spec.name}: p_test, every family ({plan.scale} scale)"):
-        figures.append("profile.png")
+    by_experts: dict[str, list] = {}
+    for run in runs:  # one profile per data setting: pooling two settings' runs would count a method twice
+        by_experts.setdefault(run.settings().get("experts") or "conditioned", []).append(run)
+    for kind, kind_runs in sorted(by_experts.items()):
+        name = "profile.png" if len(by_experts) == 1 else f"profile-{kind}-experts.png"
+        title = f"{spec.name}: p_test, every family ({plan.scale} scale, {experts_label(kind)}'s data)"
+        if spec.metric == "p_test_return" and plot_profile(kind_runs, out_dir / name, title):
+            figures.append(name)
     if "vs" in spec.figures and plot_vs(spec, records, spec.metric, out_dir / "vs.png"):
         figures.append("vs.png")
     if "tsne" in spec.figures and plot_tsne(plan, out_dir / "tsne.png"):
@@ -409,7 +446,7 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
         f"# Experiment `{spec.name}` ({plan.scale} scale)", "", spec.title + ".", "",
         f"Paper's claim: {spec.claim}.", "",
         f"- command: `{command}`" if command else "",
-        f"- cells finished: {n_done} of {len(plan.cells)}; seeds {list(plan.seeds)}",
+        cells_line(plan, selection, n_done),
         f"- commit(s): {', '.join(short_commit(c) for c in commits) or 'unknown'}; "
         f"device(s): {', '.join(devices) or 'unknown'}",
         (f"- **{changed} run(s) from code with uncommitted changes** (their commit alone does not give them back)"
@@ -427,7 +464,7 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "") -> dict:
     atomic_write_text(out_dir / "table.csv", _csv_text(("metric",) + CSV_FIELDS, csv_rows))
     if curve_rows:
         atomic_write_text(out_dir / "curves.csv", _csv_text(CURVE_FIELDS, curve_rows))
-    for old in [*out_dir.glob("curves-*.png"), out_dir / "vs.png", out_dir / "tsne.png", out_dir / "profile.png"]:
+    for old in [*out_dir.glob("curves-*.png"), *out_dir.glob("profile*.png"), out_dir / "vs.png", out_dir / "tsne.png"]:
         if old.name not in figures:  # an earlier report's figure (other families or settings): not this one's
             old.unlink(missing_ok=True)
     files = [out_dir / "report.md", out_dir / "table.csv"] + [out_dir / "curves.csv"] * bool(curve_rows)

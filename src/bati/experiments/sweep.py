@@ -33,6 +33,7 @@ from typing import Annotated, Any, Literal
 import tyro
 
 from bati.errors import BatiError, PartialFailure
+from bati.experts.kinds import experts_label
 from bati.io import atomic_write_json, hold_lock
 from bati.config import (NOT_IDENTITY, ScaleName, TrainConfig, apply_settings, differing_settings, digest_view,
                          method_config_key, method_sections, section_readers, settable_names)
@@ -517,6 +518,13 @@ def check_out_dir(out_dir: Path) -> None:
         raise SweepError(f"the sweep directory {out_dir} is not writable ({existing} is not)")
 
 
+def data_label(config) -> str:
+    """Which data a cell trains on, as the live table and log lines show it: the experts, and the episodes per
+    training task where a setting changes them."""
+    size = f", {config.episodes_per_task} episodes per task" if config.episodes_per_task is not None else ""
+    return experts_label(config.experts) + size
+
+
 class LiveTable:
     """A live table of the cells per job while the sweep runs (pending / running / done / failed)."""
 
@@ -531,14 +539,14 @@ class LiveTable:
         counts = {s: sum(v == s for v in self.status.values()) for s in ("pending", "running", "done", "failed",
                                                                           "skipped")}
         table = Table(title="bati sweep: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n))
-        for column in ("family", "scale", "eps", "method", "seeds", "status"):
+        for column in ("family", "scale", "eps", "data", "method", "seeds", "status"):
             table.add_column(column)
         style = {"done": "green", "failed": "red", "running": "yellow", "skipped": "dim"}
         for job in make_jobs(self.cells, share_training=False):
             states = sorted({self.status[c.id] for c in job.cells})
             text = "/".join(states)
             c = job.config
-            table.add_row(c.family, c.scale, f"{c.noise:g}", c.method, " ".join(map(str, job.seeds)),
+            table.add_row(c.family, c.scale, f"{c.noise:g}", data_label(c), c.method, " ".join(map(str, job.seeds)),
                           f"[{style.get(text, '')}]{text}" if text in style else text)
         return table
 
@@ -557,7 +565,8 @@ class LiveTable:
         also = ", ".join(dict.fromkeys(cell.config.method for cell in job.alongside))
         seeds = " ".join(map(str, job.seeds))
         took = "" if state == "running" else f" after {(now - started) / 60:.1f} min"
-        print(f"[{time.strftime('%H:%M:%S')}] sweep: {c.family} {c.scale} eps {c.noise:g} {c.method} seeds {seeds}"
+        print(f"[{time.strftime('%H:%M:%S')}] sweep: {c.family} {c.scale} eps {c.noise:g} ({data_label(c)}) {c.method} "
+              f"seeds {seeds}"
               f"{f' (with {also} alongside)' if also else ''}: {state}{took}", file=sys.stderr, flush=True)
 
     def __enter__(self):

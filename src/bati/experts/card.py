@@ -15,9 +15,12 @@ import numpy as np
 from bati.envs import get_family
 from bati.envs.rollout import Episodes, rollout
 from bati.experts.zoo import ZOO_DIR, Expert, load
-from bati.io import atomic_write_json, atomic_write_text, code_record
+from bati.io import atomic_write_json, atomic_write_text, check_directory, code_record
 
 HALF_CHEETAH_CONTROL_COST = 0.05
+PAPER_ORACLE = {"AntDir": 58.7, "HalfCheetahVel": -139.3, "HalfCheetahDir": 291.2, "HopperParam": 290.2,
+                "WalkerParam": 549.2}
+"""Table 4's "Oracle (Pre-IQL)" row: the paper's experts' own return on the test tasks."""
 
 
 def expert_episodes(expert: Expert, env_tasks, policy_tasks, noise, seed, collectors=None) -> Episodes:
@@ -33,11 +36,50 @@ def expert_episodes(expert: Expert, env_tasks, policy_tasks, noise, seed, collec
     return rollout(family, env_tasks, act, noise=noise, seed=seed)
 
 
+def test_task_experts(family, train: list, test: list, seed: int, drawn: bool) -> tuple[list[int], list[int]]:
+    """Per test task, the training task whose expert is the most different one and the one whose expert acts for
+    it. Among tied training tasks (HalfCheetahDir's directions) the first, or with `drawn` (per-task experts,
+    which differ among tied tasks, as their collections draw them: `bati.data.plan`) one drawn per test task."""
+    from bati.data.plan import tied
+
+    rng = np.random.default_rng([seed, CARD_TIES_STREAM])
+    pick = (lambda c: int(rng.choice(c))) if drawn else (lambda c: int(c[0]))
+    different = [pick(tied(family, t, train, farthest=True)) for t in test]
+    similar = [pick(tied(family, t, train, farthest=False)) for t in test]
+    return different, similar
+
+
+CARD_TIES_STREAM = 0xCA4D
+
+
+def learning_curve(meta: dict) -> dict | None:
+    """Whether an expert's training curve was still rising at its budget, from the evaluations its export
+    records (`eval_curve`: steps and mean evaluation return): the change of the mean return over the last
+    fifth of the budget, and "rising" where it is more than RISING of the final return's size (None: not
+    recorded, exports from before curves were kept)."""
+    curve = meta.get("eval_curve")
+    if not curve or len(curve["steps"]) < 2:
+        return None
+    steps, returns = np.asarray(curve["steps"], float), np.asarray(curve["mean_return"], float)
+    start = steps[-1] * 0.8
+    before = float(np.interp(start, steps, returns))
+    change = float(returns[-1] - before)
+    rising = change > RISING * max(abs(float(returns[-1])), 1e-9)
+    return {"from_steps": int(start), "to_steps": int(steps[-1]), "change": change, "final": float(returns[-1]),
+            "still_rising": bool(rising)}
+
+
+RISING = 0.05
+"""A curve whose mean evaluation return grew by more than 5% of its final value over the budget's last fifth
+is still rising (not converged)."""
+
+
 def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = None,
                experts: str = "conditioned") -> dict:
     """Evaluate the expert of `family_name` (or its per-task experts) and write card.json / card.md next to it.
     Per-task experts: the expert for training task i is expert i, for a test task the most similar training
-    task's (App. C.2), and the card lies in the experts' own directory."""
+    task's (App. C.2; among tied ones, one drawn per test task), and the card lies in the experts' own
+    directory."""
     family = get_family(family_name)
     if family.discrete_actions:  # nothing shipped to describe: its values are exact (docs/environments.md)
         raise ValueError(f"{family_name}'s expert is the exact best response, computed, not shipped: it has no "
@@ -50,8 +92,8 @@ def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = Non
 
         expert.check_tasks(train)
         directory = directory / PER_TASK_DIR
-    different = [family.most_different(t, train) for t in test]
-    similar = [family.most_similar(t, train) for t in test]
+    check_directory(directory, "the expert's directory (its card goes beside it)", package=zoo_dir is None)
+    different, similar = test_task_experts(family, train, test, seed, drawn=experts == "per-task")
     wrong = [train[j] for j in different]
     noise = family.default_noise
 
@@ -67,6 +109,8 @@ def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = Non
         "train_steps": expert.meta.get("train_steps", expert.meta.get("train_steps_per_task")),
         "train_wall_time_s": expert.meta["train_wall_time_s"],
         "train_parts": expert.meta.get("parts", 1),
+        "learning_curve": learning_curve(expert.meta),
+        "paper_oracle": PAPER_ORACLE.get(family_name),
         "train_tasks": train,
         "test_tasks": test,
         "train_returns": own.returns[: len(train)].tolist(),
@@ -127,7 +171,8 @@ Evaluated with `bati experts card --family {card['family']} --seed {card['split_
 
 **{card['summary']}**
 
-- Oracle (Pre-IQL) return: test tasks {card['oracle_test_return']:.1f}, training tasks {card['oracle_train_return']:.1f}
+- Oracle (Pre-IQL) return: test tasks {card['oracle_test_return']:.1f}, training tasks {card['oracle_train_return']:.1f}{_paper(card)}
+- Budget: {card['train_steps']:,} transitions{' per task' if per_task else ''}; {_curve(card)}
 - On each test task M, the expert for the most different training task (the p_test collector)
   earns {card['most_different_expert_test_return']:.1f}: a gap of {card['task_specificity_gap']:.1f}.
 
@@ -135,6 +180,20 @@ Evaluated with `bati experts card --family {card['family']} --seed {card['split_
 | --- | --- | --- | --- | --- |
 {rows}
 """
+
+
+def _paper(card: dict) -> str:
+    paper = card.get("paper_oracle")
+    return "" if paper is None else f" (the paper's Table 4: {paper:.1f})"
+
+
+def _curve(card: dict) -> str:
+    curve = card.get("learning_curve")
+    if curve is None:
+        return "training curve not recorded with the export"
+    state = "still rising (not converged)" if curve["still_rising"] else "flat (within 5% of its final value)"
+    return (f"mean evaluation return (eps 0, own tasks) {curve['change']:+.1f} over the last fifth "
+            f"({curve['from_steps']:,} -> {curve['to_steps']:,}), final {curve['final']:.1f}: {state}")
 
 
 def _fmt(task) -> str:

@@ -3,7 +3,8 @@
 Task i of `split_tasks(seed=0)`'s training tasks has its own env (fixed to task i, eps = 0), replay
 buffer, networks, optimiser states, jax key and numpy generator. Each iteration steps the n envs
 once (one lockstep call) and, every `update_every` steps, applies `update_every * updates_per_step`
-SAC updates to every task in one jitted call: `SAC.update_many` mapped over the task axis (`lax.map`).
+SAC updates to every task in one jitted call: `SAC.update_many` over the task axis (`lax.map` on the CPU,
+`vmap` on an accelerator: `--task-axis`).
 A task's random streams depend only on (seed, its index), so training a subset of the tasks (`tasks`)
 gives each of them the parameters the full program gives it (tested).
 
@@ -28,8 +29,10 @@ from bati.envs import TaskFamily
 from bati.envs.rollout import LockstepEnvs, rollout
 from bati.experts.base import Expert
 from bati.experts.sac import RESUME_IDENTITY, SAC, SACConfig, generator_from_state
+from bati.experts.zoo import read_actors, read_expert_meta
 from bati.io import (
     append_jsonl,
+    read_jsonl_lines,
     atomic_save_npz,
     atomic_write_bytes,
     atomic_write_json,
@@ -80,18 +83,36 @@ class TaskBuffers:
             self.data[k][:, : self.size] = arrays[k]
 
 
+TASK_AXES = ("map", "vmap")
+"""How the tasks' SAC updates run in one jitted call: `lax.map` (one task after another, the same program for
+every task) or `vmap` (one batched program)."""
+
+
+def default_task_axis(backend: str | None = None) -> str:
+    """The faster axis on `backend` (default: JAX's): `map` on the CPU (benchmarks/per_task_update.py: 1.3x
+    vmap's rate, docs/performance.md), `vmap` on an accelerator, whose batched matrix products keep it busy."""
+    return "map" if (backend or jax.default_backend()) == "cpu" else "vmap"
+
+
 class PerTaskSAC:
     """SAC's networks and update over a leading task axis of states, batches and keys.
 
-    The update maps `SAC.update_many` over the tasks inside one jitted call (`lax.map`: the same
-    program for every task, so a task's numbers do not depend on which others train beside it;
-    vmapping the update instead hangs XLA's CPU runtime from 3 tasks on, jax 0.10)."""
+    The update applies `SAC.update_many` to every task inside one jitted call: mapped (`lax.map`: the same
+    program for every task, so a task's numbers do not depend on which others train beside it) or vmapped
+    (one batched program: on an accelerator a task's numbers may differ in the last bits with the number of
+    tasks beside it)."""
 
-    def __init__(self, obs_dim: int, action_dim: int, config):
+    def __init__(self, obs_dim: int, action_dim: int, config, task_axis: str = "map"):
+        if task_axis not in TASK_AXES:
+            raise ValueError(f"task_axis={task_axis!r}: choose one of {', '.join(TASK_AXES)}")
         self.sac = SAC(obs_dim, 0, action_dim, config)
+        self.task_axis = task_axis
         self.init = jax.jit(lambda keys: jax.lax.map(self.sac.init, keys))
-        self.update = jax.jit(lambda states, batches, keys: jax.lax.map(
-            lambda args: self.sac._update_many(*args), (states, batches, keys)))
+        if task_axis == "vmap":
+            self.update = jax.jit(jax.vmap(self.sac._update_many))
+        else:
+            self.update = jax.jit(lambda states, batches, keys: jax.lax.map(
+                lambda args: self.sac._update_many(*args), (states, batches, keys)))
         self._act = jax.jit(jax.vmap(self._act_one, in_axes=(0, 0, 0, None)), static_argnames="deterministic")
 
     def _act_one(self, actor, obs, key, deterministic: bool):
@@ -120,7 +141,7 @@ def train_per_task_experts(run, show_progress: bool = True) -> Path:
     probe = family.make_env(tasks[0], noise=0.0)
     obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
     probe.close()
-    learner = PerTaskSAC(obs_dim, action_dim, config.sac)
+    learner = PerTaskSAC(obs_dim, action_dim, config.sac, config.task_axis)
     updates_per_call = max(1, int(round(config.update_every * config.updates_per_step)))
 
     keys = task_keys(config.seed, indices)
@@ -179,10 +200,21 @@ def train_per_task_experts(run, show_progress: bool = True) -> Path:
             "family_version": family.record.version, "hidden_dims": list(config.sac.hidden_dims),
             "split_seed": SPLIT_SEED, "task_indices": indices, "tasks": [family.task_to_array(t).tolist() for t in tasks],
             "train_steps_per_task": buffers.size, "seed": config.seed,
-            "train_wall_time_s": round(time.perf_counter() - start, 1),
-            "final_eval_returns": None if returns is None else [round(float(r), 2) for r in returns]}
+            "train_wall_time_s": round(time.perf_counter() - start, 1), **_logged_evaluations(out, buffers.size)}
     save_per_task_experts(config.export_dir / config.family / PER_TASK_DIR, config.family, state.actor.params, meta)
     return out
+
+
+def _logged_evaluations(out: Path, steps: int) -> dict:
+    """From the run's metrics.jsonl, up to `steps` (a run exported at an earlier checkpoint logs no later
+    evaluation): `eval_curve` (steps, mean evaluation return over the run's tasks) and `final_eval_returns`
+    (each task's return at `steps`, None where no evaluation was logged there)."""
+    path = out / "metrics.jsonl"
+    records = [r for _, r in read_jsonl_lines(path, require=("steps", "eval_return"))] if path.is_file() else []
+    records = [r for r in records if r["steps"] <= steps]
+    last = records[-1] if records and records[-1]["steps"] == steps else None
+    return {"eval_curve": {"steps": [r["steps"] for r in records], "mean_return": [r["eval_return"] for r in records]},
+            "final_eval_returns": None if last is None else last.get("eval_returns")}
 
 
 def evaluate_per_task(learner: PerTaskSAC, actors, family: TaskFamily, tasks: list, indices: list[int],
@@ -215,6 +247,10 @@ def merge_per_task_experts(family: TaskFamily, parts: list[Path], zoo_dir: Path,
         raise ValueError("give at least one part to merge")
     target = zoo_dir / family.name / PER_TASK_DIR
     check_directory(target, "the zoo directory", package=package)
+    for part in map(Path, parts):
+        if part.exists() and not part.is_dir():
+            raise ValueError(f"{part} is a file: --parts takes zoo folders, each holding {family.name}/{PER_TASK_DIR}/ "
+                             "(a part's run directory's zoo/)")
     loaded = [load_per_task(family, Path(part) / family.name / PER_TASK_DIR) for part in parts]
     first = loaded[0].meta
     for part, experts in zip(parts, loaded):
@@ -239,9 +275,22 @@ def merge_per_task_experts(family: TaskFamily, parts: list[Path], zoo_dir: Path,
     meta = {**{k: v for k, v in first.items() if k != "family"},
             "task_indices": [indices[k] for k in order], "tasks": [tasks[k] for k in order],
             "train_wall_time_s": round(sum(experts.meta.get("train_wall_time_s", 0.0) for experts in loaded), 1),
-            "final_eval_returns": [finals[k] for k in order], "parts": len(loaded)}
+            "final_eval_returns": [finals[k] for k in order], "parts": len(loaded),
+            "eval_curve": _merged_curve([experts.meta for experts in loaded])}
     save_per_task_experts(target, family.name, actors, meta)
     return meta
+
+
+def _merged_curve(metas: list[dict]) -> dict | None:
+    """The parts' mean evaluation returns joined into the mean over all their tasks, at the steps every part
+    evaluated at (None where a part recorded no curve)."""
+    curves = [meta.get("eval_curve") for meta in metas]
+    if not all(curves):
+        return None
+    steps = sorted(set.intersection(*(set(c["steps"]) for c in curves)))
+    weights = np.array([len(meta["tasks"]) for meta in metas], float)
+    at = [dict(zip(c["steps"], c["mean_return"])) for c in curves]
+    return {"steps": steps, "mean_return": [float(np.average([a[s] for a in at], weights=weights)) for s in steps]}
 
 
 def _save_checkpoint(out: Path, state, keys, rngs, episode: int, buffers: TaskBuffers, wall_time: float) -> None:
@@ -315,6 +364,22 @@ class PerTaskExperts(Expert):
     def check_tasks(self, train_tasks: list) -> None:
         """ValueError unless these experts were trained for exactly `train_tasks` (a collection's)."""
         arrays = np.stack([self.family.task_to_array(t) for t in train_tasks])
+        if arrays.shape == self.train_task_arrays.shape and np.allclose(arrays, self.train_task_arrays, atol=1e-6):
+            return
+        seed = self.meta.get("split_seed", SPLIT_SEED)
+        indices = self.meta.get("task_indices") or []
+        own = training_tasks(self.family, seed)
+        covered = len(indices) == len(self.train_task_arrays) and all(0 <= i < len(own) for i in indices) and np.allclose(
+            np.stack([self.family.task_to_array(own[i]) for i in indices]), self.train_task_arrays, atol=1e-6)
+        missing = [i for i in range(len(own)) if i not in indices]
+        same_split = len(own) == len(train_tasks) and np.allclose(
+            arrays, np.stack([self.family.task_to_array(t) for t in own]), atol=1e-6)
+        if covered and missing and same_split:  # a part of the export this collection needs
+            name = self.family.name
+            raise ValueError(f"the {name} per-task experts cover {len(indices)} of the {len(own)} training tasks of "
+                             f"data seed {seed}; tasks {_ranges(missing)} have none: train them (`bati experts train "
+                             f"--family {name} --per-task --tasks {' '.join(map(str, missing))}`) and join the parts "
+                             f"with `bati experts merge --family {name} --parts ...`")
         if arrays.shape != self.train_task_arrays.shape or not np.allclose(arrays, self.train_task_arrays, atol=1e-6):
             raise ValueError(f"the {self.family.name} per-task experts were trained for the {len(self.train_task_arrays)} "
                              f"training tasks of data seed {self.meta.get('split_seed', SPLIT_SEED)}; this collection's "
@@ -328,8 +393,10 @@ def load_per_task(family: TaskFamily, directory: Path) -> PerTaskExperts:
     if not meta_path.is_file():
         raise FileNotFoundError(
             f"no per-task experts for {family_name} in {directory}; train them with `bati experts train --family "
-            f"{family_name} --per-task` (exported to runs/experts/{family_name}-per-task/zoo: pass that as --zoo-dir)")
-    meta = json.loads(meta_path.read_text())
+            f"{family_name} --per-task` (exported to runs/experts/{family_name}-per-task/zoo: the folder to give as "
+            "--zoo-dir to collect, or as a part to `bati experts merge --parts`)")
+    retrain = f"bati experts train --family {family_name} --per-task"
+    meta = read_expert_meta(meta_path, retrain)
     if meta.get("family") != family_name or meta.get("kind") != "per-task":
         raise ValueError(f"{meta_path} holds {meta.get('kind', 'conditioned')} experts of {meta.get('family')!r}, "
                          f"not per-task experts of {family_name!r}")
@@ -340,5 +407,16 @@ def load_per_task(family: TaskFamily, directory: Path) -> PerTaskExperts:
     sac = SAC(meta["obs_dim"], 0, meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
     n = len(meta["tasks"])
     template = jax.eval_shape(lambda: jax.lax.map(sac.init, jnp.zeros((n, 2), jnp.uint32))).actor.params
-    actors = flax.serialization.from_bytes(template, (directory / "actors.msgpack").read_bytes())
+    actors = read_actors(directory / "actors.msgpack", template, retrain)
     return PerTaskExperts(family, actors, meta)
+
+
+def _ranges(indices: list[int]) -> str:
+    """[10, 11, 12, 15] as "10-12, 15"."""
+    runs: list[list[int]] = []
+    for i in indices:
+        if runs and i == runs[-1][-1] + 1:
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+    return ", ".join(f"{r[0]}-{r[-1]}" if len(r) > 1 else str(r[0]) for r in runs)

@@ -12,6 +12,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import jax
 import numpy as np
@@ -28,6 +29,7 @@ from bati.experts.sac import (
     state_from_bytes,
     state_to_bytes,
 )
+from bati.experts.per_task import TASK_AXES, default_task_axis
 from bati.experts.zoo import save_expert
 from bati.io import append_jsonl, atomic_save_npz, check_directory, check_run_config
 from bati.processes import stall_watchdog
@@ -60,7 +62,7 @@ class ExpertTrainConfig:
     """Export into the package's own zoo instead (src/bati/experts/zoo: the expert every later collection
     of this family uses, replacing the shipped one)."""
     per_task: bool = False
-    """Train one SAC per training task (App. C.2: the 20 training tasks of data seed 0), all as one vmapped
+    """Train one SAC per training task (App. C.2: the 20 training tasks of data seed 0), all as one
     program (bati.experts.per_task); `total_steps` is then per task (default: FamilyRecord.per_task_expert_steps)."""
     tasks: tuple[int, ...] | None = None
     """With --per-task: train only these training tasks' experts (indices; default all). Each gets the
@@ -68,6 +70,9 @@ class ExpertTrainConfig:
     update_every: int = 50
     """With --per-task: environment steps per task between update calls (each applies
     update_every * updates_per_step updates to every task)."""
+    task_axis: Literal["auto", "map", "vmap"] = "auto"
+    """With --per-task: how one call updates every task, `map` (one after another) or `vmap` (batched); `auto`:
+    the faster on this backend (map on the CPU, vmap on an accelerator; benchmarks/per_task_update.py)."""
     sac: SACConfig = field(default_factory=SACConfig)
 
     def resolved(self) -> ExpertTrainConfig:
@@ -78,7 +83,7 @@ class ExpertTrainConfig:
         """The run resolved once: its config with every default filled in, and its family object."""
         family = get_family(self.family)  # the one lookup by name; an unknown family is one line
         record = family.record
-        if record.expert_steps is None:
+        if record.discrete_actions:
             raise ValueError(f"{self.family}'s expert is not a SAC (KuhnPoker: the exact best response, "
                              "bati.experts.kuhn, computed when needed): there is no SAC expert to train")
         budget = record.per_task_expert_steps if self.per_task else record.expert_steps
@@ -102,15 +107,38 @@ class ExpertTrainConfig:
                     isinstance(i, int) and 0 <= i < n for i in self.tasks):
                 raise ValueError(f"tasks={list(self.tasks)}: give distinct training-task indices in 0..{n - 1}")
         if budget is None and self.total_steps is None:
-            raise ValueError(f"{self.family} has no per-task expert budget (FamilyRecord.per_task_expert_steps): "
-                             "give --total-steps")
+            field_name = "per_task_expert_steps" if self.per_task else "expert_steps"
+            raise ValueError(f"{self.family} has no {'per-task ' if self.per_task else ''}expert budget (its "
+                             f"FamilyRecord.{field_name} is None): give --total-steps, or set it in the record")
         total = budget if self.total_steps is None else self.total_steps
         if total <= self.start_steps:
             raise ValueError(f"total_steps ({total:,}) must exceed start_steps ({self.start_steps:,}): SAC would never "
                              "update and the exported expert would be untrained")
+        _check_some_update(self, total, record.episode_length)
+        if self.task_axis not in ("auto",) + TASK_AXES:
+            raise ValueError(f"task_axis={self.task_axis!r}: choose auto, {' or '.join(TASK_AXES)}")
+        axis = default_task_axis() if self.task_axis == "auto" else self.task_axis
         config = ExpertTrainConfig(**{**asdict(self), "total_steps": total, "out_dir": out, "export_dir": export,
-                                      "sac": self.sac})
+                                      "task_axis": axis, "sac": self.sac})
         return ResolvedExperts(config, family)
+
+
+def _check_some_update(config: ExpertTrainConfig, total: int, episode_length: int) -> None:
+    """ValueError (one line) where the budget leaves no SAC update: an expert is never exported untrained."""
+    if config.updates_per_step == 0:
+        raise ValueError("updates_per_step=0: SAC would never update and the exported expert would be untrained")
+    if not config.per_task:
+        if round(config.num_envs * config.updates_per_step) == 0:
+            raise ValueError(f"updates_per_step={config.updates_per_step:g} x num_envs={config.num_envs} rounds to 0 SAC "
+                             "updates per lockstep step: the exported expert would be untrained")
+        return
+    collected = -(-total // episode_length) * episode_length  # whole episodes
+    first = max(config.update_every, -(-config.start_steps // config.update_every) * config.update_every)
+    if first > collected:
+        raise ValueError(f"no SAC update would run: updates come every update_every={config.update_every:,} steps "
+                         f"from start_steps={config.start_steps:,} on (the first at {first:,}), but each task collects "
+                         f"{collected:,} (total_steps {total:,} in whole episodes of {episode_length}): the exported "
+                         "experts would be untrained")
 
 
 @dataclass(frozen=True)
@@ -119,6 +147,13 @@ class ResolvedExperts:
 
     config: ExpertTrainConfig
     family: TaskFamily
+
+    @property
+    def collected_steps(self) -> int:
+        """The transitions (per task, with per_task) a run collects: its budget in whole episodes of every
+        lockstep env."""
+        per_round = self.family.record.episode_length * (1 if self.config.per_task else self.config.num_envs)
+        return -(-self.config.total_steps // per_round) * per_round
 
 
 class ReplayBuffer:
@@ -239,6 +274,9 @@ def train_and_export(config: ExpertTrainConfig, *, console) -> None:
     """`bati experts train`: every setting checked before any work (one line), the expert trained, and where
     it was exported printed on the rich `console`."""
     run = config.resolve()
+    if run.collected_steps != run.config.total_steps:
+        console.print(f"total_steps {run.config.total_steps:,} is collected in whole episodes: "
+                      f"{run.collected_steps:,} transitions{' per task' if run.config.per_task else ''}", soft_wrap=True)
     config, out = run.config, train_resolved(run)
     where = "the package zoo (every later collection of it uses this expert)" if config.into_package else \
         f"{config.export_dir} (collect with --zoo-dir {config.export_dir})"

@@ -13,18 +13,10 @@ import numpy as np
 
 from bati.envs import TaskFamily, get_family
 from bati.experts.base import Expert
+from bati.experts.kinds import EXPERT_KINDS, check_kind  # noqa: F401 (the zoo's names)
 from bati.io import atomic_write_bytes, atomic_write_json
 
 ZOO_DIR = Path(__file__).parent / "zoo"
-EXPERT_KINDS = ("conditioned", "per-task")
-"""Which experts collect a family's data: one task-conditioned SAC (ours, the default) or one SAC per
-training task (the paper's, App. C.2)."""
-
-
-def check_kind(kind: str) -> str:
-    if kind not in EXPERT_KINDS:
-        raise ValueError(f"experts={kind!r}: choose one of {', '.join(EXPERT_KINDS)}")
-    return kind
 
 
 class ExpertPolicy(Expert):
@@ -98,7 +90,7 @@ def load_for(family: TaskFamily, zoo_dir: str | Path | None = None, kind: str = 
             f"no expert for {family_name} in {directory}; `bati experts train --family {family_name}` trains one "
             f"and exports it to runs/experts/{family_name}/zoo/ (its --export-dir): point at that with "
             f"--zoo-dir runs/experts/{family_name}/zoo")
-    meta = json.loads(meta_path.read_text())
+    meta = read_expert_meta(meta_path, f"bati experts train --family {family_name}")
     if meta.get("family") != family_name:
         raise ValueError(f"{meta_path} holds an expert of {meta.get('family')!r}, not {family_name!r}")
     version, current = meta.get("family_version", 1), family.record.version
@@ -107,5 +99,28 @@ def load_for(family: TaskFamily, zoo_dir: str | Path | None = None, kind: str = 
                          f"version {current}; retrain it with `bati experts train --family {family_name}`")
     sac = SAC(meta["obs_dim"], meta["task_dim"], meta["action_dim"], SACConfig(tuple(meta["hidden_dims"])))
     template = jax.eval_shape(sac.init, jax.random.PRNGKey(0)).actor.params  # shapes only: no compute
-    params = flax.serialization.from_bytes(template, (directory / "actor.msgpack").read_bytes())
+    params = read_actors(directory / "actor.msgpack", template, f"bati experts train --family {family_name}")
     return ExpertPolicy(family, params, meta)
+
+
+def read_expert_meta(path: Path, retrain: str) -> dict:
+    """An expert's expert.json; ValueError naming the file and what to do where it is torn or not an object."""
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path} is damaged ({err}); export the expert again (`{retrain}`) or restore the file") from err
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path} holds a JSON {type(meta).__name__}, not an expert's record; export the expert again "
+                         f"(`{retrain}`) or restore the file")
+    return meta
+
+
+def read_actors(path: Path, template, retrain: str):
+    """Actor parameters saved with flax (msgpack) in the shapes of `template`; ValueError naming the file."""
+    try:
+        return flax.serialization.from_bytes(template, path.read_bytes())
+    except FileNotFoundError as err:
+        raise FileNotFoundError(f"{path} is missing beside its expert.json; export the expert again (`{retrain}`)") from err
+    except Exception as err:  # msgpack's and flax's errors for truncated or foreign bytes have no common base
+        raise ValueError(f"{path} is damaged ({type(err).__name__}: {err}); export the expert again (`{retrain}`) "
+                         "or restore the file") from err

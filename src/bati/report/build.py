@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from bati.errors import BatiError
-from bati.io import PathError, atomic_write_text, check_outside_package, make_dirs
+from bati.experts.kinds import experts_label
+from bati.io import PathError, atomic_write_text, check_directory, make_dirs
 from bati.report.convergence import NEGLIGIBLE, drift_interval, format_drift, run_drift
 from bati.report.curves import save_figure
 from bati.report.held_out import HELD_OUT_COLUMNS, held_out_markdown, held_out_rows, plot_held_out
@@ -43,7 +44,7 @@ FIRST_METHODS = ("bati", "bati-r")
 LAST_METHODS = ("oracle", "no-context")
 EXPECTED_EVALUATIONS = 5
 # Settings shown in every title (when recorded); other settings appear when they differ between groups.
-TITLE_KEYS = ("family", "scale", "noise", "steps", "context_length", "eval_context_length")
+TITLE_KEYS = ("family", "scale", "noise", "experts", "steps", "context_length", "eval_context_length")
 
 CSV_COLUMNS = (
     "table", "family", "scale", "noise", "steps", "task_batch", "batch_size", "context_length",
@@ -155,6 +156,8 @@ def group_runs(runs: list[RunResult]) -> list[Group]:
         parts = [g.family, g.settings.get("scale")]
         if g.settings.get("noise") is not None:
             parts.append(f"eps{_fmt_setting(g.settings['noise'])}")
+        if g.settings.get("experts") == "per-task":
+            parts.append("per-task-experts")
         if g.steps():
             parts.append(f"{g.steps()}steps")
         base = re.sub(r"[^A-Za-z0-9.+-]+", "_", "-".join(str(p) for p in parts if p is not None))
@@ -201,6 +204,8 @@ def group_title(group: Group, extra_keys: list[str]) -> str:
         parts.append(f"{s['scale']} scale")
     if not group.own_data:  # your own data has no noise model of ours
         parts.append(f"eps = {_fmt_setting(s['noise'])}" if s.get("noise") is not None else "eps not recorded")
+    if not group.own_data:
+        parts.append(f"{experts_label(s.get('experts'))}'s data")
     if group.steps():
         parts.append(f"{group.steps():,} steps")
     data = group.data()
@@ -566,8 +571,8 @@ def build_report(results_dir: Path, out_dir: Path | None = None, reps: int = BOO
         raise BatiError(f"no readable eval.json under {results_dir} "
                         "(every one was skipped, see the warnings)")
     out = Path(out_dir) if out_dir is not None else results_dir / "report"
-    try:
-        check_outside_package(out, "the report directory")
+    try:  # outside the package, and writable: named now, not as the staging folder that could not be made
+        check_directory(out, "the report directory")
     except PathError as err:
         raise BatiError(str(err)) from err
     make_dirs(out.parent)
