@@ -333,7 +333,7 @@ def test_other_data_stands_beside_the_default_data_and_never_decides(tmp_path):
     findings = decide(tmp_path)
     assert overall(findings, c1) == ("not tested", "-")
     assert claims_module.every_scale(findings, c1) == (
-        "cpu total size, per-task experts: not reproduced (HalfCheetahDir; 1 of 5 families)")
+        "cpu total size, per-task experts, 40k: not reproduced (HalfCheetahDir; 1 of 5 families)")
     write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})
     assert overall(decide(tmp_path), c1) == ("partly", "cpu")
 

@@ -57,10 +57,14 @@ class Source:
 
 
 SOURCES = (
-    Source("quick (3k steps, 20 episodes per task)", Path("results/quick/experiments"), "quick"),
-    Source("12k (4x quick steps, quick data)", Path("results/quick/locomotion-12k"), "quick", ("steps=12000",)),
-    Source("cpu (paper data, 100k steps, batch 16 x 64, IQL 128x128)", Path("results/cpu/experiments"), "cpu"),
-    Source("paper (App. C data, 100k steps, batch 16 x 256, IQL 256x256)", Path("results/paper/experiments"), "paper"),
+    Source("quick (3k steps, 20 episodes per task, one task-conditioned expert's data)", Path("results/quick/experiments"),
+           "quick"),
+    Source("12k (4x quick steps, quick data: one task-conditioned expert's)", Path("results/quick/locomotion-12k"), "quick",
+           ("steps=12000",)),
+    Source("cpu (one task-conditioned expert's data at the paper's sizes, 100k steps, batch 16 x 64, IQL 128x128)",
+           Path("results/cpu/experiments"), "cpu"),
+    Source("paper (one task-conditioned expert's data at the paper's sizes, 100k steps, batch 16 x 256, IQL 256x256)",
+           Path("results/paper/experiments"), "paper"),
     # the same scales on data collected by one SAC expert per training task (App. C.2's way; the rows above: our
     # task-conditioned expert's data), then Table 3's dataset size read in total (50 episodes per training task)
     Source("cpu, per-task experts' data (one SAC per training task, App. C.2)", Path("results/cpu/experiments"), "cpu",

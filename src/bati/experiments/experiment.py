@@ -14,8 +14,8 @@ from typing import Callable, Literal
 
 from bati.config import ScaleName
 from bati.experiments.report import experiment_report
-from bati.experiments.specs import (SPECS, ExperimentResult, default_out_dir, describe, get_spec, plan_experiment,
-                                    run_experiment, status_file)
+from bati.experiments.specs import (SPECS, ExperimentResult, Plan, default_out_dir, describe, get_spec,
+                                    plan_experiment, run_experiment, status_file)
 from bati.experiments.sweep import SweepFailed, record_lock
 
 WIDE = 120
@@ -79,6 +79,20 @@ class ExperimentOutcome:
     """Failed cells and probes: label -> error."""
 
 
+def job_plans(job: ExperimentJob, out: Path) -> tuple[Plan, Plan]:
+    """The cells the job runs, and those its report covers: every cell of the experiment at this scale in `out`,
+    finished by this command or another (the spec's families and any other family the job names)."""
+    spec = get_spec(job.name)
+    settings = job.settings + ((f"zoo_dir={job.zoo_dir}",) if job.zoo_dir is not None else ())
+    plan = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=settings, methods=job.methods,
+                           families=job.families, data_root=job.data_root)
+    paper_families = tuple(dict.fromkeys(f for part in spec.parts for f in part.families))
+    others = tuple(f for f in job.families if f not in paper_families)
+    whole = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=settings, data_root=job.data_root,
+                            families=paper_families + others if others else ())
+    return plan, whole
+
+
 def run_experiment_job(job: ExperimentJob, show_progress: bool = True,
                        on_probe: Callable[[str], None] | None = None) -> ExperimentOutcome:
     """Plan, run and report one experiment; bad settings raise ExperimentError before any work."""
@@ -87,15 +101,7 @@ def run_experiment_job(job: ExperimentJob, show_progress: bool = True,
     require_rliable()  # the report at the end needs it: say so before hours of training
     spec = get_spec(job.name)
     out = job.out_dir or default_out_dir(job.scale)
-    settings = job.settings + ((f"zoo_dir={job.zoo_dir}",) if job.zoo_dir is not None else ())
-    plan = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=settings, methods=job.methods,
-                           families=job.families, data_root=job.data_root)
-    # The report covers every cell of the experiment at this scale, finished by this command or another: the
-    # spec's families and any other family this command names.
-    paper_families = tuple(dict.fromkeys(f for part in spec.parts for f in part.families))
-    others = tuple(f for f in job.families if f not in paper_families)
-    whole = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=settings, data_root=job.data_root,
-                            families=paper_families + others if others else ())
+    plan, whole = job_plans(job, out)
     command = job.command_line()  # what reruns exactly this command's cells
     if job.report_only:  # reads finished cells only, so it needs no lock: a sweep may be running
         return ExperimentOutcome(experiment_report(whole, out / spec.name, command=command, selection=plan),

@@ -30,6 +30,7 @@ from pathlib import Path
 
 from bati.envs import FamilyUnavailable
 from bati.errors import PathError
+from bati.experiments.experiment import job_plans
 from bati.experiments.report import cell_records, experiment_report
 from bati.experiments.specs import MAIN_METHODS, SCALES, SPECS, Plan, get_spec, plan_experiment
 from bati.io import atomic_write_text, pack_jsonl, short_commit
@@ -79,6 +80,13 @@ class Study:
         return plan_experiment(get_spec(self.experiment), self.scale, root / self.cells_dir, seeds=self.seeds,
                                settings=self.settings, methods=self.methods, families=self.families)
 
+    def job(self):
+        """The `bati experiment` job that ran its cells (`command_line`)."""
+        from bati.experiments.experiment import ExperimentJob
+
+        return ExperimentJob(self.experiment, self.scale, seeds=self.seeds, methods=self.methods, families=self.families,
+                             settings=self.settings, out_dir=self.cells_dir, data_root=Path(self.data_root or "data"))
+
     def command_line(self) -> str:
         if self.experiment is None:
             return self.command
@@ -115,9 +123,10 @@ negatives drawn from any task, the default before 2026-11-25; ER-TRL's first for
 unbounded latents; docs/methods.md)."""
 
 DECLARED = (
-    Study(RESULTS / "cpu/experts-40k/main", "Table 4 on HalfCheetahDir with per-task experts of 40k transitions each "
-          "(a third of the paper's Oracle; the experts since retrained)", "main", "cpu", ("experts=per-task",),
-          methods=("bati", "bati-r", "recon", "focal", "unicorn", "csro", "oracle"), families=("HalfCheetahDir",)),
+    Study(RESULTS / "cpu/experts-40k/experts", "Table 4 on HalfCheetahDir with per-task experts of 40k transitions "
+          "each (a third of the paper's Oracle; the experts since retrained; the conditioned cells are the experts "
+          "study's)", "experts", "cpu", methods=("bati", "bati-r", "recon", "focal", "unicorn", "csro", "oracle"),
+          families=("HalfCheetahDir",)),
     Study(RESULTS / "cpu/experiments/main-ertrl-unbounded", "ER-TRL without the tanh on its latent (the paper's "
           "form)", "main", "cpu", ("ertrl.latent_activation=none",), methods=("er-trl",),
           out_dir=RESULTS / "cpu/experiments"),
@@ -404,12 +413,12 @@ def regenerate_reports(root: Path = Path(".")) -> list[Path]:
     done = []
     for study in studies(root):
         if study.experiment is not None:
-            try:
-                plan = study.plan(root)
+            try:  # as `bati experiment ... --report-only` writes it: its cells, and every cell in its folder
+                plan, whole = job_plans(study.job(), root / study.cells_dir)
             except FamilyUnavailable as err:  # its report stays as it is: say so, do the others
                 warnings.warn(f"{study.report}/report.md not rewritten: {err}", ReportWarning, stacklevel=2)
                 continue
-            experiment_report(plan, root / study.report, command=study.command_line())
+            experiment_report(whole, root / study.report, command=study.command_line(), selection=plan)
             done.append(study.report)
     return done
 

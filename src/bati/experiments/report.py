@@ -23,7 +23,7 @@ import numpy as np
 
 from bati.config import family_of
 from bati.errors import BatiError
-from bati.experts.kinds import experts_label
+from bati.experts.kinds import data_label
 from bati.experiments.probes import probe_path, read_probe
 from bati.experiments.specs import Plan, Spec
 from bati.io import atomic_write_text, short_commit
@@ -424,7 +424,7 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "", selection: P
         by_experts.setdefault(run.settings().get("experts") or "conditioned", []).append(run)
     for kind, kind_runs in sorted(by_experts.items()):
         name = "profile.png" if len(by_experts) == 1 else f"profile-{kind}-experts.png"
-        title = f"{spec.name}: p_test, every family ({plan.scale} scale, {experts_label(kind)}'s data)"
+        title = f"{spec.name}: p_test, every family ({plan.scale} scale, {data_label(kind)})"
         if spec.metric == "p_test_return" and plot_profile(kind_runs, out_dir / name, title):
             figures.append(name)
     if "vs" in spec.figures and plot_vs(spec, records, spec.metric, out_dir / "vs.png"):

@@ -518,7 +518,7 @@ def check_out_dir(out_dir: Path) -> None:
         raise SweepError(f"the sweep directory {out_dir} is not writable ({existing} is not)")
 
 
-def data_label(config) -> str:
+def cell_data(config) -> str:
     """Which data a cell trains on, as the live table and log lines show it: the experts, and the episodes per
     training task where a setting changes them."""
     size = f", {config.episodes_per_task} episodes per task" if config.episodes_per_task is not None else ""
@@ -546,7 +546,7 @@ class LiveTable:
             states = sorted({self.status[c.id] for c in job.cells})
             text = "/".join(states)
             c = job.config
-            table.add_row(c.family, c.scale, f"{c.noise:g}", data_label(c), c.method, " ".join(map(str, job.seeds)),
+            table.add_row(c.family, c.scale, f"{c.noise:g}", cell_data(c), c.method, " ".join(map(str, job.seeds)),
                           f"[{style.get(text, '')}]{text}" if text in style else text)
         return table
 
@@ -565,7 +565,7 @@ class LiveTable:
         also = ", ".join(dict.fromkeys(cell.config.method for cell in job.alongside))
         seeds = " ".join(map(str, job.seeds))
         took = "" if state == "running" else f" after {(now - started) / 60:.1f} min"
-        print(f"[{time.strftime('%H:%M:%S')}] sweep: {c.family} {c.scale} eps {c.noise:g} ({data_label(c)}) {c.method} "
+        print(f"[{time.strftime('%H:%M:%S')}] sweep: {c.family} {c.scale} eps {c.noise:g} ({cell_data(c)}) {c.method} "
               f"seeds {seeds}"
               f"{f' (with {also} alongside)' if also else ''}: {state}{took}", file=sys.stderr, flush=True)
 

@@ -18,3 +18,9 @@ def check_kind(kind: str) -> str:
 def experts_label(kind: str | None) -> str:
     """"per-task experts" / "one task-conditioned expert"; a record from before kinds existed: conditioned."""
     return EXPERT_LABELS.get(kind or "conditioned", str(kind))
+
+
+def data_label(kind: str | None) -> str:
+    """"per-task experts' data" / "one task-conditioned expert's data"."""
+    label = experts_label(kind)
+    return f"{label}' data" if label.endswith("s") else f"{label}'s data"

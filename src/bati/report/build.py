@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from bati.errors import BatiError
-from bati.experts.kinds import experts_label
+from bati.experts.kinds import data_label
 from bati.io import PathError, atomic_write_text, check_directory, make_dirs
 from bati.report.convergence import NEGLIGIBLE, drift_interval, format_drift, run_drift
 from bati.report.curves import save_figure
@@ -205,7 +205,7 @@ def group_title(group: Group, extra_keys: list[str]) -> str:
     if not group.own_data:  # your own data has no noise model of ours
         parts.append(f"eps = {_fmt_setting(s['noise'])}" if s.get("noise") is not None else "eps not recorded")
     if not group.own_data:
-        parts.append(f"{experts_label(s.get('experts'))}'s data")
+        parts.append(data_label(s.get("experts")))
     if group.steps():
         parts.append(f"{group.steps():,} steps")
     data = group.data()
