@@ -440,3 +440,38 @@ def test_an_experiment_writes_under_runs_never_into_the_committed_results_unless
                                  show_progress=False)
     assert outcome.report_dir == Path("runs/experiments/quick/main") and (tmp_path / outcome.report_dir).is_dir()
     assert not any((tmp_path / "results").rglob("*.*"))
+
+
+def test_the_experiment_list_keeps_its_counts_on_an_80_column_terminal():
+    from rich.console import Console
+
+    from bati.experiments.experiment import experiment_list, show_experiment_list
+
+    console = Console(width=80, record=True, color_system=None)
+    show_experiment_list(console=console)
+    text = console.export_text()
+    assert "…" not in text and all(len(line) <= 80 for line in text.splitlines() if line.startswith(("┃", "│")))
+    main_row = next(line for line in text.splitlines() if line.startswith("│ main "))
+    cells = next(r["cells"] for r in experiment_list() if r["name"] == "main")
+    assert [int(x) for x in main_row.split("│")[3:6]] == [cells["quick"], cells["cpu"], cells["paper"]]
+
+
+def test_bati_runs_closing_table_fits_80_columns_and_says_its_seeds_and_units():
+    from rich.console import Console
+    from rich.markdown import Markdown
+
+    from bati.experiments.main_job import compact_table
+
+    def row(method, n, train, test, error):
+        return {"method": method, "n_seeds": n, "seeds": list(range(n)), "p_train_normalised_mean": train,
+                "p_train_normalised_std": 0.0 if n == 1 else 0.1, "p_test_normalised_mean": test,
+                "p_test_normalised_std": 0.0 if n == 1 else 0.2, "p_test_inference_error_mean": error}
+
+    text = compact_table([row("bati", 1, 0.47, 0.63, 0.65), row("recon", 3, 0.51, -0.17, float("nan"))])
+    console = Console(width=80, record=True, color_system=None)
+    console.print(Markdown(text))
+    shown = console.export_text()
+    assert "nan" not in shown and "…" not in shown and "distance)" in shown
+    assert all(len(line) <= 80 for line in shown.splitlines())
+    assert "| bati | 1 seed (0) | 0.47 | 0.63 | 0.65 |" in text
+    assert "| recon | 3 seeds (0 1 2) | 0.51 ± 0.10 | -0.17 ± 0.20 | – |" in text

@@ -630,3 +630,14 @@ def test_an_evaluator_waits_for_its_warm_up_and_a_failed_one_is_left_to_the_eval
     with pytest.raises(AttributeError):
         broken.evaluate_runs(None, None, [0])
     evaluator.close(), broken.close()
+
+
+def test_bati_train_says_where_its_run_is(tmp_path, point_data, capsys):
+    from bati.cli import main
+
+    args = ["train", "--family", "PointGoal", "--steps", "10", "--eval-every", "10", "--log-every", "5",
+            "--task-batch", "4", "--batch-size", "8", "--context-length", "20", "--iql.hidden-dims", "16", "16"]
+    assert main(args + ["--out-dir", str(tmp_path / "one")]) == 0
+    assert f"run directory: {tmp_path / 'one'}" in capsys.readouterr().out
+    assert main(args + ["--seeds", "0", "1", "--out-dir", str(tmp_path / "two")]) == 0
+    assert f"run directories: {tmp_path / 'two'}/bati-seed{{0,1}}" in capsys.readouterr().out

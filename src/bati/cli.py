@@ -234,7 +234,7 @@ class Experiment(ExperimentJob):
 class Report:
     """Tables (Markdown + CSV) and learning curves (PNG) from the eval.json files under a directory."""
 
-    results_dir: tyro.conf.Positional[Path]
+    results_dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RESULTS_DIR")]
     """Directory searched recursively for runs' eval.json files."""
     out_dir: Path | None = None
     """Where report.md, the CSVs and PNGs go (default: RESULTS_DIR/report)."""

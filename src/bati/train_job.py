@@ -41,8 +41,11 @@ def run_train_job(job: TrainJob, *, console) -> None:
     runs_dir = (config.out_dir or Path("runs") / family / config.scale) if job.seeds else None
     if job.seeds:
         config = replace(config, out_dir=None)
-    for summary in train_seeds(config, job.seeds or (config.seed,), runs_dir=runs_dir,
-                               show_progress=console.is_terminal, family=run.family):
+    seeds = job.seeds or (config.seed,)
+    where = runs_dir if job.seeds else run.config.out_dir
+    console.print(f"run director{'ies' if job.seeds else 'y'}: {where}"
+                  + (f"/{config.method}-seed{{{','.join(map(str, seeds))}}}" if job.seeds else ""), soft_wrap=True)
+    for summary in train_seeds(config, seeds, runs_dir=runs_dir, show_progress=console.is_terminal, family=run.family):
         console.print(f"{config.method} on {family}, seed {summary['seed']}: {result_line(summary)} "
                       f"(mean of the last {summary['evaluations_averaged']} evaluations)")
 

@@ -131,9 +131,9 @@ def show_experiment_list(*, console) -> None:
 
     table = Table(title="bati experiments (cells: runs at the quick / cpu / paper scale; probes: quick)")
     table.add_column("name", no_wrap=True)
-    table.add_column("paper", no_wrap=True)
+    table.add_column("paper", max_width=20, overflow="fold")  # the counts keep their width on 80 columns
     for column in ("quick", "cpu", "paper", "probes"):
-        table.add_column(column, justify="right", no_wrap=True)
+        table.add_column(column, justify="right", no_wrap=True, min_width=len(column))
     rows = experiment_list()
     wide = console.width >= WIDE
     if wide:

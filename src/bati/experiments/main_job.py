@@ -110,10 +110,32 @@ def run_and_show_main_job(job: MainJob, *, console) -> None:
     from rich.markdown import Markdown
 
     results = run_main_job(job, show_progress=console.is_terminal)
-    console.print(Markdown(results["markdown"]))
+    console.print(Markdown(compact_table(results["rows"]) + "\n" + results["reading"]))
     console.print(f"wall time {results['wall_time_s'] / 60:.1f} min; results in {results['out_dir']}/ "
                   f"(results.md, results.json; the report with CSVs and curves in {results['report_dir']}/)",
                   soft_wrap=True)
+
+def compact_table(rows: list[dict]) -> str:
+    """The few columns a reader needs, for an 80-column terminal (the full table: results.md and the report):
+    normalised p_train and p_test scores, and the p_test task-inference error (a task distance, App. C.2)."""
+
+    def score(row, source):
+        mean, std = row[f"{source}_normalised_mean"], row[f"{source}_normalised_std"]
+        return f"{mean:.2f}" + (f" ± {std:.2f}" if row["n_seeds"] > 1 else "")
+
+    def error(row):
+        mean = row.get("p_test_inference_error_mean")
+        return "–" if mean is None or not math.isfinite(mean) else f"{mean:.2f}"
+
+    def seeds(row):
+        return f"{row['n_seeds']} seed{'s' if row['n_seeds'] > 1 else ''} ({' '.join(map(str, row['seeds']))})"
+
+    lines = ["| method | seeds | p_train (normalised) | p_test (normalised) | p_test inference error (a task distance) |",
+             "|---|---|---|---|---|"]
+    lines += [f"| {METHOD_LABELS.get(r['method'], r['method'])} | {seeds(r)} | {score(r, 'p_train')} | "
+              f"{score(r, 'p_test')} | {error(r)} |" for r in rows]
+    return "\n".join(lines) + "\n"
+
 
 def reading(rows: list[dict], steps: int | None, n_seeds: int) -> str:
     """One line reading the report's table (`bati.report.build.method_rows`): who holds under p_test
