@@ -89,8 +89,9 @@ every task) or `vmap` (one batched program)."""
 
 
 def default_task_axis(backend: str | None = None) -> str:
-    """The faster axis on `backend` (default: JAX's): `map` on the CPU (benchmarks/per_task_update.py: 1.3x
-    vmap's rate, docs/performance.md), `vmap` on an accelerator, whose batched matrix products keep it busy."""
+    """The faster axis on `backend` (default: JAX's): `map` on the CPU (benchmarks/per_task_update.py: 1.3-1.9x
+    vmap's rate on one core, docs/performance.md), `vmap` on an accelerator (not measured yet: its batched matrix
+    products are what a GPU is built for)."""
     return "map" if (backend or jax.default_backend()) == "cpu" else "vmap"
 
 
