@@ -189,6 +189,17 @@ def edit_manifest(key: str) -> Callable:
     return setup
 
 
+def drop_from_config(key: str) -> Callable:
+    """The run's config.json without one of its settings (a hand edit)."""
+    def setup(env: Env, patch, stack) -> None:
+        path = env.run / "config.json"
+        record = json.loads(path.read_text())
+        del record[key]
+        path.write_text(json.dumps(record))
+
+    return setup
+
+
 def edit_config(**changes) -> Callable:
     """The run's config.json with some settings replaced (a hand edit)."""
     def setup(env: Env, patch, stack) -> None:
@@ -547,6 +558,9 @@ CASES = [
          ("iql.hidden_dims must be one or more integers >= 1", "'abc'"), setup=edit_config(iql__hidden_dims="abc")),
     Case("--config: an unknown setting", lambda e: ["train", "--config", e.run], 2,
          ("setting(s) this version does not know: 'stpes'",), setup=edit_config(stpes=5)),
+    Case("--config: a recorded setting removed", lambda e: ["train", "--config", e.run], 2,
+         ("config.json lacks steps: a run's config.json records every setting it ran with",),
+         setup=drop_from_config("steps")),
     Case("--config: an unknown setting in a section", lambda e: ["train", "--config", e.run], 2,
          ("setting(s) this version does not know: 'iql.hiddn'",), setup=edit_config(iql__hiddn=3)),
     Case("config.json torn", lambda e: e.train(), 2, ("config.json is not valid JSON",),

@@ -198,6 +198,11 @@ class TrainConfig:
                           for key in set(record[name]) - {f.name for f in fields(section)})
         if unknown:  # a typo in a hand-edited config would otherwise train with the default
             raise ValueError(f"{path} has setting(s) this version does not know: {', '.join(map(repr, unknown))}")
+        missing = [name for name in RECORDED if name not in record]
+        if missing:  # taking the default would rerun another run than the one recorded
+            file = path if path.name == "config.json" else path / "config.json"
+            raise ValueError(f"{file} lacks {', '.join(missing)}: a run's config.json records every setting it ran "
+                             "with; restore the file or start the run anew without --config")
         return cls.from_record(record)
 
     def record(self, family: TaskFamily | None = None) -> dict:
@@ -486,6 +491,9 @@ def _dataclass_from(cls, values: dict):
     names = {f.name for f in fields(cls)}
     return cls(**{k: _tuples(v) for k, v in values.items() if k in names})
 
+
+RECORDED = ("family", "method", "seed", "scale", "steps")
+"""Settings every run's config.json holds since the first version: `--config` refuses a file without one."""
 
 # Not what a run is: where it lives, how it is evaluated and logged (these may differ when a run directory is moved
 # or resumed), and the version of its record's format.
