@@ -40,7 +40,7 @@ from bati.io import LOCK_NAME, hold_lock
 
 FAMILY = "PointGoal"
 TINY = {"n_episodes": 2, "n_context_episodes": 1}
-COLLECTION = "PointGoal/quick-seed0-eps1"
+COLLECTION = "PointGoal/quick-seed0-eps1-per-task-experts"  # the default collectors: per-task experts
 
 
 @pytest.fixture(autouse=True)
@@ -451,10 +451,10 @@ CASES = [
          ("ertrl.gan_hidden_dims must be one or more integers >= 1",)),
     Case("train --zoo-dir without the expert", lambda e: [*TRAIN, "--zoo-dir", e.tmp, "--data-root", e.data,
                                                            "--out-dir", e.tmp / "new"], 2,
-         ("no expert for PointGoal in", "bati experts train --family PointGoal")),
+         ("no per-task experts for PointGoal in", "bati experts train --family PointGoal --per-task")),
     Case("run --zoo-dir without the expert", lambda e: ["run", "--zoo-dir", e.tmp, "--data-root", e.data,
                                                          "--out-dir", e.tmp / "new"], 2,
-         ("no expert for PointGoal in",)),
+         ("no per-task experts for PointGoal in",)),
     Case("own dataset missing", lambda e: ["train", "--datasets", e.tmp / "nope", "--out-dir", e.tmp / "new"], 2,
          ("no Minari dataset",)),
     Case("run --methods all bogus", lambda e: ["run", "--methods", "all", "bogus", "--data-root", e.data], 2,
@@ -539,16 +539,23 @@ CASES = [
     Case("infer: complex actions", lambda e: ["infer", "--run-dir", e.run, "--context", e.tmp / "c.npz"], 2,
          ("c.npz: actions holds complex128 values",), setup=context_file("c.npz", actions=np.zeros((4, 2), complex))),
     Case("a torn expert.json", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh, "--zoo-dir",
-                                          e.tmp / "zoo"], 2, ("zoo/PointGoal/expert.json is damaged", "export the expert again"),
+                                          e.tmp / "zoo", "--experts", "conditioned"], 2,
+         ("zoo/PointGoal/expert.json is damaged", "export the expert again"),
          setup=damaged_zoo("expert.json", b'{"family": "Poi')),
     Case("a truncated actor file", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh, "--zoo-dir",
-                                              e.tmp / "zoo"], 2, ("zoo/PointGoal/actor.msgpack is damaged",),
-         setup=damaged_zoo("actor.msgpack", b"\x82\xa5")),
+                                              e.tmp / "zoo", "--experts", "conditioned"], 2,
+         ("zoo/PointGoal/actor.msgpack is damaged",), setup=damaged_zoo("actor.msgpack", b"\x82\xa5")),
+    Case("a torn per-task expert.json", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh,
+                                                   "--zoo-dir", e.tmp / "zoo"], 2,
+         ("zoo/PointGoal/per-task/expert.json is damaged",), setup=damaged_zoo("per-task/expert.json", b'{"fam')),
+    Case("a truncated per-task actors file", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh,
+                                                        "--zoo-dir", e.tmp / "zoo"], 2,
+         ("zoo/PointGoal/per-task/actors.msgpack is damaged",), setup=damaged_zoo("per-task/actors.msgpack", b"\x82")),
     Case("a data size no machine holds (train)", lambda e: [*TRAIN, "--episodes-per-task", "1000000000", "--data-root",
                                                             e.fresh, "--out-dir", e.tmp / "new"], 2,
          ("1,000,000,000 episodes per training task", "TB of PointGoal data; this machine has", "of memory")),
     Case("no expert to collect with", lambda e: ["data", "collect", "--family", FAMILY, "--root", e.fresh, "--zoo-dir",
-                                                 e.tmp / "zoo"], 2, ("no expert for PointGoal",), setup=empty_zoo),
+                                                 e.tmp / "zoo"], 2, ("no per-task experts for PointGoal",), setup=empty_zoo),
     Case("sweep out-dir is a file", lambda e: ["sweep", "--out-dir", e.tmp / "a_file"], 2, ("a_file is a file",)),
     # --- a run directory's files
     Case("config.json is []", lambda e: e.train(), 2, ("config.json holds a list",), setup=write("config.json", "[]")),
@@ -863,7 +870,7 @@ def test_kill_9_at_random_points_of_a_collection_then_recollect_gives_the_same_d
             assert np.array_equal(a[name][key], b[name][key]) if key in ("observations", "actions", "rewards") \
                 else a[name][key] == b[name][key], (name, key)
     assert store.verify_collection(killed)[0] == "ok"
-    leftovers = [p.name for p in (tmp_path / "killed" / FAMILY).iterdir() if p.name != "quick-seed0-eps1"]
+    leftovers = [p.name for p in (tmp_path / "killed" / FAMILY).iterdir() if p.name != "quick-seed0-eps1-per-task-experts"]
     assert leftovers == []  # no partial directory, no lock file
 
 

@@ -186,7 +186,7 @@ def test_a_compared_cell_still_rising_over_its_scored_window_is_named_beside_the
     """FOCAL's p_test climbs through its last five evaluations on AntDir (+0.4 normalised): the page says the
     verdict rests on a cell that has not converged; BATI's flat curves count as converged."""
     write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})
-    plan = plan_experiment(get_spec("main"), "cpu", tmp_path / CPU.out_dir, seeds=(0, 1, 2))
+    plan = plan_experiment(get_spec("main"), "cpu", tmp_path / CPU.out_dir, seeds=(0, 1, 2), settings=CPU.settings)
     for cell in plan.cells:
         path = cell.config.out_dir / "eval.json"
         if not path.exists():
@@ -264,7 +264,8 @@ def test_the_noise_claim_shows_bati_r_beside_bati_without_counting_it(tmp_path):
 
 def test_bati_alone_decides_whether_longer_contexts_help(tmp_path):
     """C5 is about BATI's own gain with the context's length: its runs count without a baseline beside them."""
-    plan = plan_experiment(get_spec("context-length"), CPU.scale, tmp_path / CPU.out_dir, seeds=(0, 1, 2))
+    plan = plan_experiment(get_spec("context-length"), CPU.scale, tmp_path / CPU.out_dir, seeds=(0, 1, 2),
+                           settings=CPU.settings)
     for cell in plan.cells:
         c = cell.config
         if c.method != "bati":

@@ -95,18 +95,18 @@ def test_worker_error_propagates_and_leaves_nothing(tmp_path, monkeypatch):
     monkeypatch.setattr(collect_mod, "CHUNK", CHUNK)
     real = collect_mod.load_expert
     zoo = tmp_path / "zoo"
-    (zoo / FAMILY).mkdir(parents=True)
-    expert_dir = collect_mod.Path(collect_mod.__file__).parents[1] / "experts" / "zoo" / FAMILY
-    for name in ("expert.json", "actor.msgpack"):
-        (zoo / FAMILY / name).write_bytes((expert_dir / name).read_bytes())
-    expert = real(get_family(FAMILY), zoo)  # the main process has its expert; the workers will find none
+    (zoo / FAMILY / "per-task").mkdir(parents=True)  # the family's default experts: one SAC per training task
+    expert_dir = collect_mod.Path(collect_mod.__file__).parents[1] / "experts" / "zoo" / FAMILY / "per-task"
+    for name in ("expert.json", "actors.msgpack"):
+        (zoo / FAMILY / "per-task" / name).write_bytes((expert_dir / name).read_bytes())
+    expert = real(get_family(FAMILY), zoo)  # the main process has its experts; the workers will find none
 
-    def main_only(family, zoo_dir=None, experts="conditioned"):
-        (zoo / FAMILY / "expert.json").unlink(missing_ok=True)
+    def main_only(family, zoo_dir=None, experts=None):
+        (zoo / FAMILY / "per-task" / "expert.json").unlink(missing_ok=True)
         return expert
 
     monkeypatch.setattr(collect_mod, "load_expert", main_only)
-    with pytest.raises(FileNotFoundError, match="no expert for PointGoal"):
+    with pytest.raises(FileNotFoundError, match="no per-task experts for PointGoal"):
         tiny(tmp_path / "data", workers=2, zoo_dir=zoo)
     assert list((tmp_path / "data" / FAMILY).iterdir()) == []
 

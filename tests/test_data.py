@@ -178,7 +178,9 @@ def test_a_record_flags_code_that_differs_from_its_commit(monkeypatch):
 # --- the collected data -----------------------------------------------------------------------
 def test_collection_layout_and_manifest(small):
     result, data = small
-    assert result.path.name == "quick-seed0-eps1" and result.path.parent.name == FAMILY and not result.cached
+    # the default collectors: one SAC per training task (App. C.2), named in the directory
+    assert result.path.name == "quick-seed0-eps1-per-task-experts" and result.path.parent.name == FAMILY
+    assert not result.cached and result.manifest["experts"] == "per-task"
     names = sorted(p.name for p in result.path.iterdir() if p.is_dir())
     assert names == sorted(f"{s}-{i:02d}-v0" for s in ("train", "p_test", "p_train") for i in range(20))
     manifest = json.loads((result.path / "manifest.json").read_text())
@@ -331,7 +333,7 @@ def test_crash_leaves_nothing_and_rerun_succeeds(tmp_path, monkeypatch):
     monkeypatch.setattr(store, "write_dataset", real_write)
     # a killed run (no cleanup) leaves a partial dir of a dead process: the next run removes it;
     # a target directory without a manifest is incomplete (or foreign): it is replaced
-    stale = tmp_path / FAMILY / ".quick-seed0-eps1.partial-999999999-dead"
+    stale = tmp_path / FAMILY / ".quick-seed0-eps1-per-task-experts.partial-999999999-dead"
     (stale / "train-00-v0").mkdir(parents=True)
     target = store.collection_dir(tmp_path, get_family(FAMILY), "quick", 0, 1.0)
     (target / "train-00-v0").mkdir(parents=True)
@@ -341,7 +343,7 @@ def test_crash_leaves_nothing_and_rerun_succeeds(tmp_path, monkeypatch):
     result = tiny(tmp_path)
     assert not result.cached and (result.path / "manifest.json").is_file()
     assert not stale.exists() and not (target / "junk.txt").exists()
-    assert sorted(p.name for p in (tmp_path / FAMILY).iterdir()) == ["quick-seed0-eps1"]
+    assert sorted(p.name for p in (tmp_path / FAMILY).iterdir()) == ["quick-seed0-eps1-per-task-experts"]
     assert load_family_data(FAMILY, root=tmp_path).train.observations.shape == (20, 400, 2)
 
 
@@ -371,7 +373,7 @@ def test_the_data_fingerprint_follows_the_numbers_not_the_files(tiny_seed0, tmp_
 
 def test_noise_override(tmp_path):
     result = tiny(tmp_path, noise=0.0)
-    assert result.path.name == "quick-seed0-eps0" and result.manifest["noise"] == 0.0
+    assert result.path.name == "quick-seed0-eps0-per-task-experts" and result.manifest["noise"] == 0.0
     data = load_family_data(FAMILY, noise=0.0, root=tmp_path)
     next_obs = np.asarray(data.train.next_observations)
     noise_free = -np.linalg.norm(next_obs - data.train_task_arrays[:, None], axis=-1)
@@ -496,8 +498,10 @@ def test_missing_expert_error(tmp_path, capsys):
     zoo.mkdir()
     with pytest.raises(FileNotFoundError, match="bati experts train --family PointGoal"):
         collect(FAMILY, root=tmp_path / "data", zoo_dir=zoo, progress=False)
-    with pytest.raises(FileNotFoundError, match="no expert for PointGoal"):
+    with pytest.raises(FileNotFoundError, match="no per-task experts for PointGoal"):
         ensure_family_data(FAMILY, root=tmp_path / "data", zoo_dir=zoo, progress=False)
+    with pytest.raises(FileNotFoundError, match="no expert for PointGoal"):
+        ensure_family_data(FAMILY, root=tmp_path / "data", zoo_dir=zoo, progress=False, experts="conditioned")
     line = one_line_error(capsys, "data", "collect", "--family", FAMILY, "--root", str(tmp_path / "data"),
                           "--zoo-dir", str(zoo))
     assert "PointGoal" in line and "bati experts train --family PointGoal" in line

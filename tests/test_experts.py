@@ -35,18 +35,18 @@ def test_training_writes_checkpoints_metrics_and_an_exported_expert(trained):
     run = trained / "straight"
     assert (run / "checkpoint.npz").exists() and (run / "config.json").exists()
     assert len((run / "metrics.jsonl").read_text().splitlines()) == 2
-    expert = load("PointGoal", trained / "zoo-straight")
+    expert = load("PointGoal", trained / "zoo-straight", "conditioned")
     assert expert.meta["train_steps"] == 800
 
 
 def test_resumed_training_gives_the_same_expert_as_an_uninterrupted_run(trained):
-    a = load("PointGoal", trained / "zoo-straight").actor_params
-    b = load("PointGoal", trained / "zoo-resumed").actor_params
+    a = load("PointGoal", trained / "zoo-straight", "conditioned").actor_params
+    b = load("PointGoal", trained / "zoo-resumed", "conditioned").actor_params
     jax.tree_util.tree_map(np.testing.assert_array_equal, a, b)
 
 
 def test_policy_interface_single_batched_deterministic_and_stochastic(trained):
-    expert = load("PointGoal", trained / "zoo-straight")
+    expert = load("PointGoal", trained / "zoo-straight", "conditioned")
     single = expert(np.zeros(2), [0.6, 0.8])
     assert single.shape == (2,) and np.all(np.abs(single) <= 1)
     batch = expert(np.zeros((3, 2)), [[1.0, 0.0], [0.6, 0.8], [-1.0, 0.0]])
@@ -64,7 +64,7 @@ def test_policy_interface_single_batched_deterministic_and_stochastic(trained):
 
 
 def test_card_reports_returns_on_train_and_test_tasks_and_the_gap(trained):
-    card = write_card("PointGoal", seed=0, zoo_dir=trained / "zoo-straight")
+    card = write_card("PointGoal", seed=0, zoo_dir=trained / "zoo-straight", experts="conditioned")
     assert len(card["train_returns"]) == 20 and len(card["test_returns"]) == 20
     assert card["task_specificity_gap"] == pytest.approx(
         card["oracle_test_return"] - card["most_different_expert_test_return"])
@@ -73,7 +73,7 @@ def test_card_reports_returns_on_train_and_test_tasks_and_the_gap(trained):
 
 def test_missing_expert_and_mismatched_run_directory_are_clear_errors(tmp_path, trained):
     with pytest.raises(FileNotFoundError, match="bati experts train --family PointGoal") as err:
-        load("PointGoal", tmp_path)
+        load("PointGoal", tmp_path, "conditioned")
     assert "--zoo-dir runs/experts/PointGoal/zoo" in str(err.value)  # where training exports it, how to use it
     config = ExpertTrainConfig("PointGoal", total_steps=400, out_dir=trained / "straight", seed=3,
                                export_dir=tmp_path, **SMALL)
@@ -89,8 +89,9 @@ def test_missing_expert_and_mismatched_run_directory_are_clear_errors(tmp_path, 
 
 
 def test_shipped_experts_load():
-    expert = load("PointGoal")
-    assert expert(np.zeros(2), [1.0, 0.0]).shape == (2,)
+    for kind in ("conditioned", "per-task"):
+        expert = load("PointGoal", kind=kind)
+        assert expert(np.zeros(2), [1.0, 0.0]).shape == (2,)
 
 
 def test_an_expert_checkpoint_saved_before_train_states_loads_into_them():
@@ -169,7 +170,7 @@ def test_experts_train_leaves_the_package_zoo_as_it_was_unless_asked(trained, tm
     assert main(["experts", "train", "--family", "PointGoal", "--total-steps", "1200", "--out-dir", str(run),
                  *options]) == 0
     assert f"exported to {run / 'zoo'}" in " ".join(capsys.readouterr().out.split())
-    assert load("PointGoal", run / "zoo").meta["train_steps"] == 1200
+    assert load("PointGoal", run / "zoo", "conditioned").meta["train_steps"] == 1200
     assert {p: p.read_bytes() for p in sorted(ZOO_DIR.rglob("*")) if p.is_file()} == shipped
 
 

@@ -204,7 +204,8 @@ def test_per_task_collection_is_its_own_collection_and_refuses_other_tasks(train
     family = get_family("PointGoal")
     path = store.collection_dir(tmp_path, family, "quick", 0, 1.0, None, "per-task")
     assert path.name.endswith("-per-task-experts")
-    assert "--experts per-task" in store.collect_command(family, "quick", 0, 1.0, tmp_path, None, "per-task")
+    assert "--experts" not in store.collect_command(family, "quick", 0, 1.0, tmp_path, None, "per-task")  # the default
+    assert "--experts per-task" in store.collect_command(family, "quick", 1, 1.0, tmp_path, None, "per-task")
     with pytest.raises(ValueError, match="choose one of conditioned, per-task"):
         collect("PointGoal", "quick", root=tmp_path / "data", experts="per_task", progress=False)
 
@@ -234,8 +235,9 @@ def test_all_tasks_experts_collect_a_loadable_collection_and_have_a_card(trained
     assert result.manifest["experts"] == "per-task" and result.manifest["settings"]["experts"] == "per-task"
     data = load_family_data("PointGoal", "quick", root=tmp_path, experts="per-task")
     assert len(data.train_tasks) == 20
+    assert len(load_family_data("PointGoal", "quick", root=tmp_path).train_tasks) == 20  # the default's
     with pytest.raises(Exception, match="no PointGoal data"):  # the conditioned collection is another one
-        load_family_data("PointGoal", "quick", root=tmp_path)
+        load_family_data("PointGoal", "quick", root=tmp_path, experts="conditioned")
     card = write_card("PointGoal", zoo_dir=zoo, experts="per-task")
     assert card["experts"] == "per-task" and len(card["train_returns"]) == 20
     assert "all 20 trained as one program in" in (zoo / "PointGoal" / PER_TASK_DIR / "card.md").read_text()
@@ -343,3 +345,29 @@ def test_a_card_for_a_read_only_zoo_is_refused_before_any_episode(trained, tmp_p
     monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if mode & os.W_OK else real(path, mode, **kw))
     with pytest.raises(PathError, match="not writable"):
         card_module.write_card("PointGoal", zoo_dir=zoo, experts="per-task")
+
+
+def test_the_default_experts_are_per_task_where_they_were_trained_for_the_tasks():
+    """App. C.2's per-task experts collect by default where they exist for the collection's training tasks (data
+    seed 0, the default split); elsewhere the family's one expert does, and a run records which."""
+    from bati.config import TrainConfig
+    from bati.envs import TaskSplit
+    from bati.experts.kinds import family_experts
+
+    point, kuhn = get_family("PointGoal"), get_family("KuhnPoker")
+    assert family_experts(point) == family_experts(point, None, 0, TaskSplit()) == "per-task"
+    assert family_experts(point, None, 1) == "conditioned"  # trained for seed 0's training tasks only
+    assert family_experts(point, None, 0, TaskSplit(n_train=10, n_test=30)) == "conditioned"
+    assert family_experts(kuhn) == "conditioned"  # exact best responses: one expert
+    assert family_experts(kuhn, "conditioned") == "conditioned" and family_experts(point, "per-task", 1) == "per-task"
+    with pytest.raises(ValueError, match="experts='both': choose one of conditioned, per-task"):
+        family_experts(point, "both")
+    assert TrainConfig(family="PointGoal").resolved().experts == "per-task"
+    assert TrainConfig(family="PointGoal", data_seed=1).resolved().experts == "conditioned"
+    assert TrainConfig(family="PointGoal", experts="conditioned").resolved().experts == "conditioned"
+    # a record from before the setting existed ran on the task-conditioned expert's data
+    assert TrainConfig.from_record({"family": "PointGoal", "method": "bati"}).resolved().experts == "conditioned"
+    paths = {kind: store.collection_dir("d", point, "quick", 0, 1.0, experts=kind) for kind in (None, "conditioned")}
+    assert paths[None].name == "quick-seed0-eps1-per-task-experts" and paths["conditioned"].name == "quick-seed0-eps1"
+    assert store.collect_command(point, "quick", 0, 1.0, "data").endswith("--seed 0")
+    assert store.collect_command(point, "quick", 0, 1.0, "data", experts="conditioned").endswith("--experts conditioned")

@@ -170,10 +170,10 @@ def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(
     assert failed[0]["label"] == "PointGoal/recon/seed0" and failed[0]["error"] == "RuntimeError: disk on fire"
     # without a terminal (a background run's log), one line per job as it starts and ends
     lines = [line.split("] ", 1)[1] for line in capsys.readouterr().err.splitlines() if "] sweep: " in line]
-    assert lines[0] == "sweep: PointGoal quick eps 1 (one task-conditioned expert) bati seeds 0: running"
-    assert lines[1].startswith("sweep: PointGoal quick eps 1 (one task-conditioned expert) bati seeds 0: done after ")
-    assert lines[2:] == ["sweep: PointGoal quick eps 1 (one task-conditioned expert) recon seeds 0: running",
-                         "sweep: PointGoal quick eps 1 (one task-conditioned expert) recon seeds 0: failed (RuntimeError: disk on fire) after 0.0 min"]
+    assert lines[0] == "sweep: PointGoal quick eps 1 (per-task experts) bati seeds 0: running"
+    assert lines[1].startswith("sweep: PointGoal quick eps 1 (per-task experts) bati seeds 0: done after ")
+    assert lines[2:] == ["sweep: PointGoal quick eps 1 (per-task experts) recon seeds 0: running",
+                         "sweep: PointGoal quick eps 1 (per-task experts) recon seeds 0: failed (RuntimeError: disk on fire) after 0.0 min"]
 
     ran = []
     monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None, also=():

@@ -421,7 +421,7 @@ def test_a_run_takes_its_expert_from_zoo_dir(tmp_path, point_data, monkeypatch):
     asked, loaded, used = [], [], []
     real_load, real_references = run_dir_module.load_expert, train_module.reference_returns
     monkeypatch.setattr(run_dir_module, "load_expert",
-                        lambda family, zoo_dir=None, experts="conditioned": asked.append(zoo_dir)
+                        lambda family, zoo_dir=None, experts=None: asked.append(zoo_dir)
                         or loaded.append(real_load(family, zoo_dir, experts)) or loaded[-1])
     monkeypatch.setattr(train_module, "reference_returns",
                         lambda data, **k: used.append(k.get("expert")) or real_references(data, **k))

@@ -25,10 +25,10 @@ def version2(monkeypatch):
 
 def test_data_of_another_version_lives_apart_and_is_refused(tmp_path, monkeypatch):
     first = collect("PointGoal", root=tmp_path, n_episodes=2, n_context_episodes=1, progress=False, workers=1)
-    assert first.path.name == "quick-seed0-eps1" and first.manifest["family_version"] == 1
+    assert first.path.name == "quick-seed0-eps1-per-task-experts" and first.manifest["family_version"] == 1
     monkeypatch.setattr(PointGoalFamily, "record", dataclasses.replace(PointGoalFamily.record, version=2))
     path = store.collection_dir(tmp_path, get_family("PointGoal"), "quick", 0, 1.0)
-    assert path.name == "quick-seed0-eps1-v2"  # the version-1 collection stays where it was, untouched
+    assert path.name == "quick-seed0-eps1-per-task-experts-v2"  # the version-1 collection stays where it was, untouched
     shutil.copytree(first.path, path)  # a version-1 collection where version 2's belongs
     with pytest.raises(DatasetError, match="env version 1; this bati's PointGoal is version 2"):
         collect("PointGoal", root=tmp_path, n_episodes=2, n_context_episodes=1, progress=False, workers=1)

@@ -8,7 +8,7 @@ import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Union
 
 import tyro
 from rich.console import Console
@@ -32,6 +32,7 @@ from bati.experiments.main_job import MainJob, run_and_show_main_job
 from bati.experiments.probes import show_likelihood_split
 from bati.experiments.sweep import SweepJob, sweep_and_show
 from bati.experts.card import write_card
+from bati.experts.kinds import ExpertsKind
 from bati.experts.per_task import merge_per_task_experts
 from bati.experts.train import ExpertTrainConfig, train_and_export
 from bati.experts.zoo import ZOO_DIR
@@ -80,8 +81,9 @@ class ExpertsCard:
     seed: int = 0
     """Seed of the train/test task split (the same as `bati data collect --seed`)."""
     zoo_dir: Path | None = None
-    experts: Literal["conditioned", "per-task"] = "conditioned"
-    """The family's task-conditioned expert, or its per-task experts (card in <zoo>/<family>/per-task/)."""
+    experts: ExpertsKind | None = None
+    """The family's per-task experts (card in <zoo>/<family>/per-task/) or its task-conditioned expert (default:
+    per-task where the family has them)."""
 
     def run(self) -> None:
         card = write_card(self.family, self.seed, self.zoo_dir, self.experts)

@@ -20,6 +20,7 @@ from bati.checks import check_finite_fields, check_hidden_dims, check_integer, c
 from bati.data.own import OWN_FAMILY, family_of  # noqa: F401 (family_of: imported from here by others)
 from bati.data.batch import Collection
 from bati.envs import TaskFamily, TaskSplit
+from bati.experts.kinds import ExpertsKind, family_experts
 from bati.io import read_run_config
 from bati.methods import METHODS, method_config_key, method_sections, section_methods, section_readers
 from bati.records import (  # noqa: F401 (differing_settings, digest_view: imported from here by others)
@@ -122,9 +123,10 @@ class TrainConfig:
     data_seed: int = 0
     """Seed of the collection to train on (its `bati data collect --seed`)."""
     data_root: Path = Path("data")
-    experts: Literal["conditioned", "per-task"] = "conditioned"
-    """Which experts collected the data: the family's task-conditioned SAC (ours) or one SAC per training task
-    (App. C.2's; `bati experts train --per-task`). Each is its own collection."""
+    experts: ExpertsKind | None = None
+    """Which experts collected the data: one SAC per training task (App. C.2's) or the family's one
+    task-conditioned SAC (ours). Each is its own collection (default: per-task where the family has per-task
+    experts, else its one expert: KuhnPoker's exact best responses, a family of your own)."""
     zoo_dir: Path | None = None
     """Where the family's expert is (default: the package zoo): it collects missing data, gives the expert
     reference return and DPT's labels (`bati experts train` exports into its run directory's zoo/)."""
@@ -330,6 +332,7 @@ class TrainConfig:
             out_dir=Path(out),
             data_root=Path(self.data_root),
             zoo_dir=None if self.zoo_dir is None else Path(self.zoo_dir),
+            experts=family_experts(family, self.experts, self.data_seed, split),
             iql=replace(self.iql, hidden_dims=tuple(rl_dims), discrete=family.discrete_actions),
             **{name: _for_family(getattr(self, name), family.record) for name in method_sections()},
         )

@@ -98,8 +98,9 @@ def default_method_record(family: str | None, method: str | None) -> dict | None
 
 
 def _from_version_1(record: dict) -> dict:
-    """A record without a version in today's names, its method section holding the settings added since."""
-    record = dict(record)
+    """A record without a version in today's names, holding the settings added since at the values it ran with
+    (`LATER_FIELDS`; e.g. `experts`, whose default has changed since), its method section too."""
+    record = {**LATER_FIELDS, **record}
     iql = record.get("iql")
     if isinstance(iql, dict) and "beta" in iql:
         record["iql"] = {("temperature" if k == "beta" else k): v for k, v in iql.items()}

@@ -26,6 +26,7 @@ import numpy as np
 from bati.data import store
 from bati.errors import BatiWarning
 from bati.envs import EPISODE_LENGTH, TaskFamily, TaskSplit, as_family
+from bati.experts.kinds import ExpertsKind, family_experts
 
 TRANSITION_FIELDS = ("observations", "actions", "rewards", "next_observations")
 FIELDS = TRANSITION_FIELDS + ("collector",)
@@ -198,7 +199,7 @@ def load_family_data(
     *,
     cache: bool = True,
     tasks: TaskSplit | None = None,
-    experts: str = "conditioned",
+    experts: ExpertsKind | None = None,
 ) -> FamilyData:
     """Read a complete collection (see `bati data collect`) into flat arrays.
 
@@ -209,6 +210,7 @@ def load_family_data(
     family = fam.name
     noise = fam.validate_noise(noise)
     tasks = (tasks or TaskSplit()).checked(fam)
+    experts = family_experts(fam, experts, seed, tasks)
     path = store.collection_dir(root, fam, scale, seed, noise, tasks, experts)
     manifest = store.read_manifest(path, fam, scale, seed, noise, root, tasks, experts)
     redo = store.collect_command(fam, scale, seed, noise, root, tasks, experts)
@@ -269,7 +271,7 @@ def ensure_family_data(
     cache: bool = True,
     workers: int | None = None,
     tasks: TaskSplit | None = None,
-    experts: str = "conditioned",
+    experts: ExpertsKind | None = None,
 ) -> FamilyData:
     """Collect the data if it is not on disk yet (see `collect`; `workers`: its worker processes,
     default all cores), then load it."""
@@ -292,9 +294,13 @@ class Collection:
     noise: float
     root: Path
     tasks: TaskSplit
-    experts: str = "conditioned"
+    experts: ExpertsKind | None = None
+    """Who collected it (default: the family's for these tasks, `family_experts`)."""
     n_episodes: int | None = None
     n_context_episodes: int | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "experts", family_experts(self.family, self.experts, self.seed, self.tasks))
 
     def load(self) -> FamilyData:
         """The collection as it is on disk (DatasetNotFoundError, with the collect command, if missing)."""

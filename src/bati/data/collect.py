@@ -28,7 +28,7 @@ from bati.data import store
 from bati.data.plan import OTHER_FRACTION, PLAN_STREAM, DatasetPlan, Plan, make_plan
 from bati.envs import FAMILY_NAMES, TaskFamily, TaskSplit, as_family, get_family
 from bati.envs.rollout import ONE_THREAD_ENV, LockstepEnvs
-from bati.experts.kinds import check_kind, experts_label
+from bati.experts.kinds import ExpertsKind, experts_label, family_experts
 from bati.io import atomic_write_json, check_directory, git_commit, hold_lock
 
 # Episodes per training task and per context dataset. `paper`: the family's own size
@@ -141,7 +141,7 @@ def collect(
     progress: bool = True,
     workers: int | None = None,
     tasks: TaskSplit | None = None,
-    experts: str = "conditioned",
+    experts: ExpertsKind | None = None,
     check_only: bool = False,
 ) -> CollectResult | None:
     """Collect (or find cached) the datasets of `family` under `<root>/<Family>/<scale>-seed<S>-eps<eps>`.
@@ -164,7 +164,7 @@ def collect(
     check_supported(fam)
     noise = fam.validate_noise(noise)
     tasks = (tasks or TaskSplit()).checked(fam)
-    check_kind(experts)
+    experts = family_experts(fam, experts, seed, tasks)
     default_n, default_ctx = scale_sizes(fam, scale)
     n_episodes = default_n if n_episodes is None else int(n_episodes)
     n_context_episodes = default_ctx if n_context_episodes is None else int(n_context_episodes)
@@ -284,7 +284,7 @@ def _naming_collection(err: OSError, target: Path, tmp: Path) -> OSError:
 
 
 def collection_settings(family: TaskFamily, scale: str, seed: int, noise: float, n_episodes: int,
-                        n_context_episodes: int, tasks: TaskSplit, zoo_dir, experts: str = "conditioned") -> dict:
+                        n_context_episodes: int, tasks: TaskSplit, zoo_dir, experts: ExpertsKind) -> dict:
     """Everything that decides a collection's content, in one place of its manifest: with the same
     settings (and the same expert, by its sha256) a collection is reproduced file for file. (Per-task
     experts add `experts` and `ties`; a collection by the conditioned expert records neither, as before they
@@ -304,11 +304,12 @@ def collection_settings(family: TaskFamily, scale: str, seed: int, noise: float,
 _EXPERTS: dict[tuple, Any] = {}
 
 
-def load_expert(family: TaskFamily, zoo_dir: str | Path | None = None, experts: str = "conditioned"):
+def load_expert(family: TaskFamily, zoo_dir: str | Path | None = None, experts: ExpertsKind | None = None):
     """`bati.experts.zoo.load_for`, memoised per process while the expert's files are unchanged."""
     from bati.experts.per_task import PER_TASK_DIR
     from bati.experts.zoo import ZOO_DIR, load_for
 
+    experts = family_experts(family, experts)
     directory = Path(zoo_dir or ZOO_DIR) / family.name
     files = ("expert.json", "actor.msgpack")
     if experts == "per-task":
@@ -330,8 +331,8 @@ def collector_ties(experts: str) -> str:
     return "drawn" if experts == "per-task" else "first"
 
 
-def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks=None,
-            experts="conditioned", zoo_dir=None) -> dict | None:
+def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks: TaskSplit,
+            experts: ExpertsKind, zoo_dir=None) -> dict | None:
     """The manifest of a complete collection at `target`, None if there is none; ValueError (one line) for one
     made with other sizes, or, by per-task experts, with other experts or another rule for tied collectors."""
     if not (target / store.MANIFEST).is_file():
@@ -448,7 +449,7 @@ _WORKER: dict[str, Any] = {}
 
 
 def _worker_init(family_name: str, zoo_dir: str | None, noise: float, seed: int, chunk_size: int,
-                 experts: str = "conditioned") -> None:
+                 experts: ExpertsKind) -> None:
     """Per worker process, once: one thread (so N workers use N cores), CPU only, the settings."""
     for name, value in _WORKER_THREAD_ENV.items():
         if name == "XLA_FLAGS":
@@ -481,7 +482,7 @@ def run_collection(
     *,
     workers: int = 1,
     zoo_dir: str | Path | None = None,
-    experts: str = "conditioned",
+    experts: ExpertsKind,
 ) -> dict[str, float]:
     """Roll out every planned episode (lockstep chunks of CHUNK envs) and write the datasets.
 

@@ -16,6 +16,7 @@ from rich.table import Table
 from bati.data import store
 from bati.envs import TaskSplit, get_family
 from bati.errors import PartialFailure
+from bati.experts.kinds import ExpertsKind
 
 
 class CollectionDamaged(PartialFailure):
@@ -39,8 +40,9 @@ class CollectOptions:
     """Worker processes (default: all cores)"""
     tasks: Annotated[TaskSplit, tyro.conf.OmitArgPrefixes] = TaskSplit()
     """Which tasks train and test: counts (--n-train, --n-test) or parameter ranges (--train-range LOW HIGH)."""
-    experts: Literal["conditioned", "per-task"] = "conditioned"
-    """Who collects: the family's task-conditioned SAC, or one SAC per training task (App. C.2; its own collection)."""
+    experts: ExpertsKind | None = None
+    """Who collects: one SAC per training task (App. C.2), or the family's one task-conditioned SAC; each is its
+    own collection (default: per-task where the family has per-task experts, else its one expert)."""
 
 
 @dataclass
@@ -52,8 +54,8 @@ class InfoOptions:
     root: Path = Path("data")
     tasks: Annotated[TaskSplit, tyro.conf.OmitArgPrefixes] = TaskSplit()
     """The collection's task split (as given to `bati data collect`)."""
-    experts: Literal["conditioned", "per-task"] = "conditioned"
-    """Which experts collected it (as given to `bati data collect`)."""
+    experts: ExpertsKind | None = None
+    """Which experts collected it (as given to `bati data collect`; default: the family's, as there)."""
 
 
 @dataclass

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from bati.envs import TaskFamily, TaskSplit
+from bati.experts.kinds import ExpertsKind, family_experts
 from bati.io import pid_alive
 
 MANIFEST = "manifest.json"
@@ -60,11 +61,12 @@ def collection_name(scale: str, seed: int, noise: float) -> str:
 
 
 def collection_dir(root: str | Path, family: TaskFamily, scale: str, seed: int, noise: float,
-                   tasks: TaskSplit | None = None, experts: str = "conditioned") -> Path:
+                   tasks: TaskSplit | None = None, experts: ExpertsKind | None = None) -> Path:
     """`<root>/<Family>/<scale>-seed<S>-eps<eps>[<split>][-v<version>]` (noise already validated / defaulted);
     a non-default task split adds its label, e.g. `-tasks10x30` or `-train0to3.14159-test3.14159to6.28319`,
     and an env version after the first its number (so the data of an earlier version stays where it was);
     data collected by per-task experts (App. C.2) ends in `-per-task-experts`."""
+    experts = family_experts(family, experts, seed, tasks)
     label = ("" if tasks is None else tasks.label()) + ("-per-task-experts" if experts == "per-task" else "")
     version = family.record.version
     return Path(root) / family.name / (collection_name(scale, seed, noise) + label + (f"-v{version}" if version > 1 else ""))
@@ -76,7 +78,7 @@ def dataset_name(split: str, index: int) -> str:
 
 
 def collect_command(family: TaskFamily, scale: str, seed: int, noise: float, root: str | Path,
-                    tasks: TaskSplit | None = None, experts: str = "conditioned") -> str:
+                    tasks: TaskSplit | None = None, experts: ExpertsKind | None = None) -> str:
     """The exact `bati data collect ...` command that builds this collection."""
     command = f"bati data collect --family {family.name} --scale {scale} --seed {seed}"
     if noise != family.default_noise:
@@ -87,7 +89,7 @@ def collect_command(family: TaskFamily, scale: str, seed: int, noise: float, roo
     for side, task_range in (("train", tasks.train_range), ("test", tasks.test_range)):
         if task_range is not None:
             command += f" --{side}-range {task_range[0]:.17g} {task_range[1]:.17g}"
-    if experts != "conditioned":
+    if family_experts(family, experts, seed, tasks) != family_experts(family, None, seed, tasks):
         command += f" --experts {experts}"
     if Path(root) != DEFAULT_ROOT:
         command += f" --root {root}"
@@ -96,9 +98,9 @@ def collect_command(family: TaskFamily, scale: str, seed: int, noise: float, roo
 
 # --- manifest ----------------------------------------------------------------------------------
 def read_manifest(path: Path, family: TaskFamily, scale: str, seed: int, noise: float, root,
-                  tasks: TaskSplit | None = None, experts: str = "conditioned") -> dict:
+                  tasks: TaskSplit | None = None, experts: ExpertsKind | None = None) -> dict:
     """The manifest of a complete collection, or DatasetNotFoundError / DatasetError."""
-    tasks = tasks or TaskSplit()
+    tasks, experts = tasks or TaskSplit(), family_experts(family, experts, seed, tasks)
     redo_command = collect_command(family, scale, seed, noise, root, tasks, experts)
     manifest_path = path / MANIFEST
     if not manifest_path.is_file():
@@ -278,14 +280,14 @@ def verify_collection(path: Path) -> tuple[str, list[str]]:
 
 
 def inspect_collection(root: str | Path, family: TaskFamily, scale: str, seed: int, noise: float | None,
-                       tasks: TaskSplit, experts: str = "conditioned") -> tuple[Path, dict]:
+                       tasks: TaskSplit, experts: ExpertsKind | None = None) -> tuple[Path, dict]:
     """`bati data info`: the directory and manifest of a complete collection whose files all have their
     recorded sizes (cheap; `verify_collections` reads every byte); DatasetNotFoundError / DatasetError."""
     from bati.checks import check_integer
 
     check_integer("seed", seed, low=0)  # a negative seed: no collection has one, and none can be made
     noise = family.validate_noise(noise)
-    tasks = tasks.checked(family)
+    tasks, experts = tasks.checked(family), family_experts(family, experts, seed, tasks)
     path = collection_dir(root, family, scale, seed, noise, tasks, experts)
     manifest = read_manifest(path, family, scale, seed, noise, root, tasks, experts)
     require_intact(path, manifest, collect_command(family, scale, seed, noise, root, tasks, experts))

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from bati.experiments.probes import read_probe
-from bati.experiments.specs import MUJOCO, get_spec, plan_experiment
+from bati.experiments.specs import CONDITIONED, MUJOCO, get_spec, plan_experiment
 from bati.io import short_commit
 from bati.report.convergence import NEGLIGIBLE, drift_interval, drift_verdict, run_drift
 from bati.report.runs import RunResult, jobs_wall_time
@@ -52,19 +52,20 @@ class Source:
     scale: str
     settings: tuple[str, ...] = ()
     data: str = ""
-    """Short name of data other than the default (our task-conditioned expert's, Table 3's size read per task):
-    such a source's verdicts stand beside the default data's (`every_scale`) and never decide a claim."""
+    """Short name of data other than the deciding data (our task-conditioned expert's, Table 3's size read per
+    task, the one setting whose cells cover every family): such a source's verdicts stand beside the deciding
+    data's (`every_scale`) and never decide a claim."""
 
 
 SOURCES = (
     Source("quick (3k steps, 20 episodes per task, one task-conditioned expert's data)", Path("results/quick/experiments"),
-           "quick"),
+           "quick", (CONDITIONED,)),
     Source("12k (4x quick steps, quick data: one task-conditioned expert's)", Path("results/quick/locomotion-12k"), "quick",
-           ("steps=12000",)),
+           ("steps=12000", CONDITIONED)),
     Source("cpu (one task-conditioned expert's data at the paper's sizes, 100k steps, batch 16 x 64, IQL 128x128)",
-           Path("results/cpu/experiments"), "cpu"),
+           Path("results/cpu/experiments"), "cpu", (CONDITIONED,)),
     Source("paper (one task-conditioned expert's data at the paper's sizes, 100k steps, batch 16 x 256, IQL 256x256)",
-           Path("results/paper/experiments"), "paper"),
+           Path("results/paper/experiments"), "paper", (CONDITIONED,)),
     # the same scales on data collected by one SAC expert per training task (App. C.2's way; the rows above: our
     # task-conditioned expert's data), then Table 3's dataset size read in total (50 episodes per training task)
     Source("cpu, per-task experts' data (one SAC per training task, App. C.2)", Path("results/cpu/experiments"), "cpu",
@@ -75,7 +76,7 @@ SOURCES = (
     Source("cpu, per-task experts of 40k transitions (HalfCheetahDir's first experts, since retrained)",
            Path("results/cpu/experts-40k"), "cpu", ("experts=per-task",), data="per-task experts, 40k"),
     Source("cpu, Table 3's dataset size read in total (50 episodes per training task), our expert's data",
-           Path("results/cpu/total-data"), "cpu", ("episodes_per_task=50",), data="total size"),
+           Path("results/cpu/total-data"), "cpu", ("episodes_per_task=50", CONDITIONED), data="total size"),
     Source("cpu, Table 3's dataset size read in total (50 episodes per training task), per-task experts' data "
            "(HalfCheetahDir's 40k experts)",
            Path("results/cpu/total-data"), "cpu", ("episodes_per_task=50", "experts=per-task"),
@@ -541,8 +542,9 @@ def _scale_name(finding: Finding) -> str:
 
 
 def overall(findings: list[Finding], claim: Claim) -> tuple[str, str]:
-    """The verdict at the largest scale that tests the claim on the default data (our task-conditioned
-    expert's), and that scale's label; other data have their verdicts beside it (`every_scale`)."""
+    """The verdict at the largest scale that tests the claim on the deciding data (the sources without `data`:
+    our task-conditioned expert's, whose cells cover every family), and that scale's label; other data have
+    their verdicts beside it (`every_scale`)."""
     tested = [f for f in _tested(findings, claim) if not f.source.data]
     return (tested[-1].verdict, _scale_name(tested[-1])) if tested else ("not tested", "-")
 

@@ -32,7 +32,7 @@ from bati.envs import FamilyUnavailable
 from bati.errors import PathError
 from bati.experiments.experiment import job_plans
 from bati.experiments.report import cell_records, experiment_report
-from bati.experiments.specs import MAIN_METHODS, SCALES, SPECS, Plan, get_spec, plan_experiment
+from bati.experiments.specs import CONDITIONED, MAIN_METHODS, SCALES, SPECS, Plan, get_spec, plan_experiment
 from bati.io import atomic_write_text, pack_jsonl, short_commit
 from bati.report.runs import ReportWarning, RunResult, find_eval_files, jobs_wall_time
 
@@ -109,7 +109,16 @@ TWELVE_K = RESULTS / "quick/locomotion-12k"
 
 CLUB_ANY = "csro.club_negatives=any-task"
 ERTRL_FIRST = ("ertrl.metric_weight=1.0", "ertrl.latent_activation=none")
-DAY_DEFAULTS = {
+BEFORE_PER_TASK_DEFAULT = {
+    RESULTS / "quick/experiments": ("main", "noise", "context-length", "ood-tasks", "splits", "interpolated-contexts",
+                                    "kuhn", "state-term", "unknown-tasks", "refined-inference", "self-collected"),
+    TWELVE_K: ("main", "noise", "context-length", "ood-tasks", "splits", "interpolated-contexts", "noiseless-hopper"),
+    RESULTS / "cpu/experiments": ("main", "noise", "context-length", "ood-tasks"),
+    RESULTS / "paper/experiments": ("main", "kuhn"),
+}
+"""The experiments of each store that ran before per-task experts became the default data: on the task-conditioned
+expert's."""
+_OLD_SETTINGS = {
     RESULTS / "quick/experiments/main": (CLUB_ANY, *ERTRL_FIRST),
     RESULTS / "quick/experiments/noise": (CLUB_ANY, *ERTRL_FIRST),
     RESULTS / "quick/experiments/kuhn": (CLUB_ANY, *ERTRL_FIRST),
@@ -118,9 +127,12 @@ DAY_DEFAULTS = {
     **{TWELVE_K / name: (CLUB_ANY,)
        for name in ("main", "noiseless-hopper", "noise", "ood-tasks", "context-length", "splits")},
 }
-"""Report folders whose cells ran with the defaults of their day: the settings that plan those cells (CSRO's CLUB
-negatives drawn from any task, the default before 2026-11-25; ER-TRL's first form: its FOCAL term at weight 1.0 and
-unbounded latents; docs/methods.md)."""
+DAY_DEFAULTS = {store / name: (*_OLD_SETTINGS.get(store / name, ()), CONDITIONED)
+                for store, names in BEFORE_PER_TASK_DEFAULT.items() for name in names}
+"""Report folders whose cells ran with the defaults of their day: the settings that plan those cells (the
+task-conditioned expert's data, the default before 2026-12-06; CSRO's CLUB negatives drawn from any task, the
+default before 2026-11-25; ER-TRL's first form: its FOCAL term at weight 1.0 and unbounded latents;
+docs/methods.md)."""
 
 DECLARED = (
     Study(RESULTS / "cpu/experts-40k/experts", "Table 4 on HalfCheetahDir with per-task experts of 40k transitions "
@@ -128,7 +140,7 @@ DECLARED = (
           "study's)", "experts", "cpu", methods=("bati", "bati-r", "recon", "focal", "unicorn", "csro", "oracle"),
           families=("HalfCheetahDir",)),
     Study(RESULTS / "cpu/experiments/main-ertrl-unbounded", "ER-TRL without the tanh on its latent (the paper's "
-          "form)", "main", "cpu", ("ertrl.latent_activation=none",), methods=("er-trl",),
+          "form)", "main", "cpu", ("ertrl.latent_activation=none", CONDITIONED), methods=("er-trl",),
           out_dir=RESULTS / "cpu/experiments"),
     Study(RESULTS / "cpu/total-data/experts", "Table 3's dataset size read in total: 50 episodes per training "
           "task on HalfCheetahDir instead of 1,000 (per-task data: the 40k experts)", "experts", "cpu", ("episodes_per_task=50",),
@@ -138,23 +150,23 @@ DECLARED = (
           "loss (HalfCheetahDir's same-direction tasks are not pushed apart; the 40k per-task experts' data)", "experts", "cpu",
           ("focal.same_task=value",), methods=("focal",), families=("HalfCheetahDir",)),
     Study(RESULTS / "cpu/focal-distance/main", "FOCAL with the root-mean distance in its metric loss", "main", "cpu",
-          ("focal.distance=root-mean",), methods=("focal",), families=("AntDir",), seeds=(0,)),
+          ("focal.distance=root-mean", CONDITIONED), methods=("focal",), families=("AntDir",), seeds=(0,)),
     Study(RESULTS / "cpu/tanh/main", "FOCAL with a tanh on its latent", "main", "cpu",
-          ("focal.latent_activation=tanh",), seeds=(0,), methods=("focal",), families=("AntDir",)),
+          ("focal.latent_activation=tanh", CONDITIONED), seeds=(0,), methods=("focal",), families=("AntDir",)),
     Study(RESULTS / "quick/convergence/main", "HopperParam at the quick scale with 4x its steps: converged?", "main",
-          "quick", ("steps=12000", CLUB_ANY), families=("HopperParam",)),
+          "quick", ("steps=12000", CLUB_ANY, CONDITIONED), families=("HopperParam",)),
     Study(RESULTS / "quick/convergence/kuhn", "Kuhn poker at the quick scale with 4x its steps: converged?", "kuhn",
-          "quick", ("steps=12000", CLUB_ANY)),
+          "quick", ("steps=12000", CLUB_ANY, CONDITIONED)),
     Study(RESULTS / "quick/hopper-data80/main", "HopperParam with 80 episodes per task instead of 20 (12k steps)",
-          "main", "quick", ("steps=12000", "episodes_per_task=80"), methods=("bati", "focal", "recon", "no-context",
+          "main", "quick", ("steps=12000", "episodes_per_task=80", CONDITIONED), methods=("bati", "focal", "recon", "no-context",
           "oracle"), families=("HopperParam",)),
     Study(RESULTS / "quick/kuhn-context200/kuhn", "Kuhn poker with contexts of 200 transitions", "kuhn", "quick",
-          ("eval_context_length=200", CLUB_ANY),
+          ("eval_context_length=200", CLUB_ANY, CONDITIONED),
           methods=("bati", "bati-r", "recon", "unicorn", "csro", "focal", "oracle", "no-context")),
     Study(RESULTS / "quick/bati-run/report", "`bati run`'s default: BATI, BATI-R and Recon on PointGoal",
-          command="bati run --out-dir results/quick/bati-run"),
+          command="bati run --settings experts=conditioned --out-dir results/quick/bati-run"),
     Study(RESULTS / "quick/pointgoal-convergence/report", "PointGoal at 3k and 12k steps: converged?",
-          command="bati sweep --methods bati bati-r recon no-context --settings steps=3000|12000 "
+          command="bati sweep --methods bati bati-r recon no-context --settings experts=conditioned steps=3000|12000 "
                   "--out-dir results/quick/pointgoal-convergence; bati report results/quick/pointgoal-convergence"),
     Study(RESULTS / "own-data/goalline", "Your own data: GoalLine through the Minari path (docs/own-data.md)",
           command="python examples/own_data_goalline.py --out results/own-data/goalline --steps 3000 --episodes 30 "
@@ -350,8 +362,8 @@ def headline_markdown(root: Path = Path(".")) -> str:
     from bati.experiments.claims import SOURCES, gather
     from bati.report.stats import iqm_interval
 
-    for source in reversed([s for s in SOURCES if s.scale in STORES and not s.settings]):
-        study = Study(source.out_dir / "main", "", "main", source.scale)
+    for source in reversed([s for s in SOURCES if not s.data and s.out_dir == STORES.get(s.scale)]):
+        study = Study(source.out_dir / "main", "", "main", source.scale, source.settings)
         if not (root / study.report / "report.md").exists():
             continue
         summary = summarise(study, root)

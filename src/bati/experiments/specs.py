@@ -105,6 +105,10 @@ class Spec:
     (HalfCheetahDir: left and right): which tasks a method fails on."""
 
 
+CONDITIONED = "experts=conditioned"
+"""The setting of data collected by the family's one task-conditioned expert (the default is per-task experts)."""
+
+
 def _settings(**values) -> tuple[str, ...]:
     return tuple(f"{k}={json.dumps(v)}" for k, v in values.items())
 
@@ -164,7 +168,7 @@ SPECS: dict[str, Spec] = {s.name: s for s in (
               "training task) beside ours (one task-conditioned SAC per family)",
         claim="the encoders' collapse under p_test contexts and BATI's lead (Table 4) come with the paper's "
               "per-task experts, whose behaviour differs from task to task",
-        parts=(Part(("HalfCheetahDir", "AntDir"), EXPERTS_METHODS),
+        parts=(Part(("HalfCheetahDir", "AntDir"), EXPERTS_METHODS, settings=_settings(experts="conditioned")),
                Part(("HalfCheetahDir", "AntDir"), EXPERTS_METHODS, settings=_settings(experts="per-task"))),
         columns="family_experts",
         likelihood_split=True,

@@ -14,6 +14,7 @@ import numpy as np
 
 from bati.envs import get_family
 from bati.envs.rollout import Episodes, rollout
+from bati.experts.kinds import ExpertsKind, family_experts
 from bati.experts.zoo import ZOO_DIR, Expert, load
 from bati.io import atomic_write_json, atomic_write_text, check_directory, code_record
 
@@ -75,7 +76,7 @@ is still rising (not converged)."""
 
 
 def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = None,
-               experts: str = "conditioned") -> dict:
+               experts: ExpertsKind | None = None) -> dict:
     """Evaluate the expert of `family_name` (or its per-task experts) and write card.json / card.md next to it.
     Per-task experts: the expert for training task i is expert i, for a test task the most similar training
     task's (App. C.2; among tied ones, one drawn per test task), and the card lies in the experts' own
@@ -84,6 +85,7 @@ def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = Non
     if family.discrete_actions:  # nothing shipped to describe: its values are exact (docs/environments.md)
         raise ValueError(f"{family_name}'s expert is the exact best response, computed, not shipped: it has no "
                          "card; its exact values per hand are bati.envs.kuhn.best_response_value")
+    experts = family_experts(family, experts, seed)
     expert = load(family_name, zoo_dir, experts)
     directory = Path(zoo_dir or ZOO_DIR) / family_name
     train, test = family.split_tasks(seed)

@@ -2,8 +2,25 @@
 
 from __future__ import annotations
 
-EXPERT_KINDS = ("conditioned", "per-task")
+from typing import Literal
+
+ExpertsKind = Literal["conditioned", "per-task"]
+EXPERT_KINDS: tuple[ExpertsKind, ...] = ("conditioned", "per-task")
 """One task-conditioned SAC per family (ours) or one SAC per training task (the paper's, App. C.2)."""
+
+
+def family_experts(family, experts: ExpertsKind | None = None, seed: int = 0, tasks=None) -> ExpertsKind:
+    """`experts`, or who collects `family`'s data (training tasks of `seed`, split `tasks`) unless told otherwise:
+    the paper's way (App. C.2), one SAC per training task, where the family's record gives per-task experts a
+    budget and the collection's training tasks are the ones they are trained for (data seed 0's, the default
+    split); else the family's one expert: its task-conditioned SAC (any tasks: another seed or split), KuhnPoker's
+    exact best responses, a family of your own with one trained expert. Records written before the setting
+    existed are read as "conditioned" (their value then)."""
+    if experts is not None:
+        return check_kind(experts)
+    default_split = tasks is None or not tasks.label()
+    has_them = family.record.per_task_expert_steps is not None and seed == 0 and default_split
+    return "per-task" if has_them else "conditioned"
 
 EXPERT_LABELS = {"conditioned": "one task-conditioned expert", "per-task": "per-task experts"}
 """The name of each kind's data in live tables, progress bars, report headings, figures and the claims page."""

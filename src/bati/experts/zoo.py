@@ -13,7 +13,7 @@ import numpy as np
 
 from bati.envs import TaskFamily, get_family
 from bati.experts.base import Expert
-from bati.experts.kinds import EXPERT_KINDS, check_kind  # noqa: F401 (the zoo's names)
+from bati.experts.kinds import EXPERT_KINDS, ExpertsKind, check_kind, family_experts  # noqa: F401 (the zoo's names)
 from bati.io import atomic_write_bytes, atomic_write_json
 
 ZOO_DIR = Path(__file__).parent / "zoo"
@@ -61,19 +61,20 @@ def register_expert(family_name: str, factory: Callable[[], Expert]) -> None:
     _EXPERT_FACTORIES[family_name] = factory
 
 
-def load(family_name: str, zoo_dir: str | Path | None = None, kind: str = "conditioned") -> Expert:
+def load(family_name: str, zoo_dir: str | Path | None = None, kind: ExpertsKind | None = None) -> Expert:
     """The shipped (or `zoo_dir`'s) expert of the family called `family_name` (`load_for`); an unknown name is a
     TaskError."""
     return load_for(get_family(family_name), zoo_dir, kind)
 
 
-def load_for(family: TaskFamily, zoo_dir: str | Path | None = None, kind: str = "conditioned") -> Expert:
+def load_for(family: TaskFamily, zoo_dir: str | Path | None = None, kind: ExpertsKind | None = None) -> Expert:
     """The shipped (or `zoo_dir`'s) expert of `family`, or the one `register_expert` gave it
     (KuhnPoker: exact best responses, nothing shipped). `kind`: "conditioned" (one task-conditioned SAC)
-    or "per-task" (one SAC per training task, App. C.2: `bati.experts.per_task`)."""
+    or "per-task" (one SAC per training task, App. C.2: `bati.experts.per_task`); default: the family's
+    (`family_experts`)."""
     from bati.experts.sac import SAC, SACConfig
 
-    check_kind(kind)
+    kind = family_experts(family, kind)
     family_name = family.name
     directory = Path(zoo_dir or ZOO_DIR) / family_name
     meta_path = directory / "expert.json"
