@@ -14,6 +14,7 @@ import tyro
 from rich.console import Console
 from rich.markup import escape
 
+from bati.cli_hints import DEFAULT_IN_DOC
 from bati.data.show import (
     CollectOptions,
     InfoOptions,
@@ -56,7 +57,7 @@ class Envs:
     """Show only this family (and, with --task, run one random-action episode in it)."""
     task: tuple[float, ...] | None = None
     """A task of the family, e.g. `--task 1.5` or `--task 0.6 0.8` for PointGoal."""
-    noise: float | None = None
+    noise: Annotated[float | None, DEFAULT_IN_DOC] = None
     """Per-step noise eps (default: the family's)."""
 
     def run(self) -> None:
@@ -81,7 +82,7 @@ class ExpertsCard:
     seed: int = 0
     """Seed of the train/test task split (the same as `bati data collect --seed`)."""
     zoo_dir: Path | None = None
-    experts: ExpertsKind | None = None
+    experts: Annotated[ExpertsKind | None, DEFAULT_IN_DOC] = None
     """The family's per-task experts (card in <zoo>/<family>/per-task/) or its task-conditioned expert (default:
     per-task where the family has them)."""
 
@@ -238,7 +239,7 @@ class Report:
 
     results_dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RESULTS_DIR")]
     """Directory searched recursively for runs' eval.json files."""
-    out_dir: Path | None = None
+    out_dir: Annotated[Path | None, DEFAULT_IN_DOC] = None
     """Where report.md, the CSVs and PNGs go (default: RESULTS_DIR/report)."""
 
     def run(self) -> None:
@@ -251,7 +252,7 @@ class Claims:
 
     root: Path = Path(".")
     """The project directory whose results/ holds the experiments (quick, 12k, cpu, paper)."""
-    out: Path | None = None
+    out: Annotated[Path | None, DEFAULT_IN_DOC] = None
     """Where the page goes (default: ROOT/docs/claims.md)."""
 
     def run(self) -> None:

@@ -17,8 +17,9 @@ from typing import Annotated, Any, Literal, get_args, get_type_hints
 import tyro
 
 from bati.checks import check_finite_fields, check_hidden_dims, check_integer, check_number
-from bati.data.own import OWN_FAMILY, family_of  # noqa: F401 (family_of: imported from here by others)
+from bati.cli_hints import DEFAULT_IN_DOC
 from bati.data.batch import Collection
+from bati.data.own import OWN_FAMILY, family_of  # noqa: F401 (family_of: imported from here by others)
 from bati.envs import TaskFamily, TaskSplit
 from bati.experts.kinds import ExpertsKind, family_experts
 from bati.io import read_run_config
@@ -87,7 +88,7 @@ def with_method_sections(cls: type) -> type:
 @dataclass
 @with_method_sections
 class TrainConfig:
-    family: str | None = None
+    family: Annotated[str | None, DEFAULT_IN_DOC] = None
     """The task family (default: PointGoal; with --datasets: `own`, your data)."""
     method: str = "bati"
     """bati, bati-r, bati-auto, recon, unicorn, csro, focal, er-trl, dpt, oracle or no-context."""
@@ -95,20 +96,20 @@ class TrainConfig:
     scale: ScaleName = "quick"
     """quick (20 episodes per task, 3k steps), cpu (the paper's data and steps, the quick batch and nets) or
     paper (App. C / Table 3); each names its collection and the defaults below (`SCALES`)."""
-    steps: int | None = None
+    steps: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Gradient steps (default: the scale's: quick 3k, cpu and paper 100k)."""
-    task_batch: int | None = None
+    task_batch: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Tasks in a batch (default: Table 3's 16, or all training tasks when there are fewer)."""
-    batch_size: int | None = None
+    batch_size: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Transitions per task in a batch (default: the scale's: paper 256, quick and cpu 64)."""
-    context_length: int | None = None
+    context_length: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Transitions in a training context (encoder methods) and, by default, in an evaluation context
     (default: the family's, one episode = 200; KuhnPoker 20 = 10 hands)."""
-    eval_context_length: int | None = None
+    eval_context_length: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Transitions in an evaluation context (default: context_length; Table 1 evaluates other lengths)."""
-    eval_every: int | None = None
+    eval_every: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Steps between evaluations (default: a tenth of the steps)."""
-    checkpoint_every: int | None = None
+    checkpoint_every: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Steps between checkpoints (default: eval_every)."""
     eval_workers: int = 1
     """Processes that step the evaluation's MuJoCo envs (1: this one). The same numbers whatever the count;
@@ -118,29 +119,29 @@ class TrainConfig:
     evaluation instead of idling); a checkpoint at an evaluation's step is saved once that evaluation's records
     are written. The same numbers either way. Not part of the run's identity."""
     log_every: int = 100
-    noise: float | None = None
+    noise: Annotated[float | None, DEFAULT_IN_DOC] = None
     """The family's eps for data and evaluation (default: the family's)."""
     data_seed: int = 0
     """Seed of the collection to train on (its `bati data collect --seed`)."""
     data_root: Path = Path("data")
-    experts: ExpertsKind | None = None
+    experts: Annotated[ExpertsKind | None, DEFAULT_IN_DOC] = None
     """Which experts collected the data: one SAC per training task (App. C.2's) or the family's one
     task-conditioned SAC (ours). Each is its own collection (default: per-task where the family has per-task
     experts, else its one expert: KuhnPoker's exact best responses, a family of your own)."""
-    zoo_dir: Path | None = None
+    zoo_dir: Annotated[Path | None, DEFAULT_IN_DOC] = None
     """Where the family's expert is (default: the package zoo): it collects missing data, gives the expert
     reference return and DPT's labels (`bati experts train` exports into its run directory's zoo/)."""
-    out_dir: Path | None = None
+    out_dir: Annotated[Path | None, DEFAULT_IN_DOC] = None
     """Run directory (default: runs/<family>/<scale>/<method>-seed<seed>)."""
     learning_rate: float = 3e-4
     """Adam step size of the task-inference method (IQL's is iql.learning_rate)."""
-    iql: IQLConfig = field(default_factory=IQLConfig)
+    iql: Annotated[IQLConfig, DEFAULT_IN_DOC] = field(default_factory=IQLConfig)
     """The offline RL core (default hidden sizes: quick and cpu (128, 128), paper Table 3's (256, 256))."""
 
-    episodes_per_task: int | None = None
+    episodes_per_task: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Episodes per training task in the data (default: the scale's; a collection of other sizes needs
     its own --data-root)."""
-    context_episodes: int | None = None
+    context_episodes: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Episodes per test task in the context data (default: the scale's)."""
     n_train_tasks: int = 20
     """Training tasks (App. D.3 splits AntDir's 40 tasks 10/30 and 30/10)."""
@@ -153,7 +154,7 @@ class TrainConfig:
     datasets: tuple[str, ...] = ()
     """Train on your own Minari datasets (ids or directories) instead of a family's collection: one per task,
     or grouped by --task-key (docs/own-data.md). No env: offline diagnostics instead of returns."""
-    task_key: str | None = None
+    task_key: Annotated[str | None, DEFAULT_IN_DOC] = None
     """With --datasets: the key of each episode's Minari options that names its task (default: one task per
     dataset)."""
     held_out: float = 0.2

@@ -9,13 +9,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
+from typing import Annotated
 
+from bati.cli_hints import DEFAULT_IN_DOC
 from bati.config import TrainConfig, rerun_config
 
 
 @dataclass
 class TrainJob(TrainConfig):
-    seeds: tuple[int, ...] | None = None
+    seeds: Annotated[tuple[int, ...] | None, DEFAULT_IN_DOC] = None
     """Train several seeds as one program vmapped over them (instead of --seed); --out-dir is then the parent
     of the runs' directories <method>-seed<s> (default runs/<family>/<scale>)."""
     config: Path | None = None

@@ -13,6 +13,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from bati.cli_hints import DEFAULT_IN_DOC
 from bati.data import store
 from bati.envs import TaskSplit, get_family
 from bati.errors import PartialFailure
@@ -30,17 +31,17 @@ class CollectOptions:
     """quick: 20 episodes per training task, 5 per context dataset; paper: App. C Table 3 sizes per task."""
     seed: int = 0
     """Seed of the train/test task split, the collector draws, the env resets and the expert's actions."""
-    noise: float | None = None
+    noise: Annotated[float | None, DEFAULT_IN_DOC] = None
     """Per-step noise eps of the envs (default: the family's)."""
     root: Path = Path("data")
     """Datasets root: the collection goes to <root>/<family>/<scale>-seed<seed>-eps<eps>/."""
-    zoo_dir: Path | None = None
+    zoo_dir: Annotated[Path | None, DEFAULT_IN_DOC] = None
     """Where the family's expert is loaded from (default: the package zoo)."""
-    workers: int | None = None
+    workers: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Worker processes (default: all cores)"""
     tasks: Annotated[TaskSplit, tyro.conf.OmitArgPrefixes] = TaskSplit()
     """Which tasks train and test: counts (--n-train, --n-test) or parameter ranges (--train-range LOW HIGH)."""
-    experts: ExpertsKind | None = None
+    experts: Annotated[ExpertsKind | None, DEFAULT_IN_DOC] = None
     """Who collects: one SAC per training task (App. C.2), or the family's one task-conditioned SAC; each is its
     own collection (default: per-task where the family has per-task experts, else its one expert)."""
 
@@ -60,13 +61,13 @@ class InfoOptions:
 
 @dataclass
 class VerifyOptions:
-    family: str | None = None
+    family: Annotated[str | None, DEFAULT_IN_DOC] = None
     """Only this family's collections (default: every collection under --root)."""
-    scale: Literal["quick", "paper"] | None = None
+    scale: Annotated[Literal["quick", "paper"] | None, DEFAULT_IN_DOC] = None
     """Only collections of this scale (default: any)."""
-    seed: int | None = None
+    seed: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Only collections of this seed (default: any)."""
-    noise: float | None = None
+    noise: Annotated[float | None, DEFAULT_IN_DOC] = None
     """Only collections of this eps (default: any)."""
     root: Path = Path("data")
 

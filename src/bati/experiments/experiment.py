@@ -10,12 +10,22 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Annotated, Callable, Literal
 
+from bati.cli_hints import DEFAULT_IN_DOC
 from bati.config import ScaleName
 from bati.experiments.report import experiment_report
-from bati.experiments.specs import (SPECS, ExperimentResult, Plan, default_out_dir, describe, get_spec,
-                                    plan_experiment, run_experiment, status_file)
+from bati.experiments.specs import (
+    SPECS,
+    ExperimentResult,
+    Plan,
+    default_out_dir,
+    describe,
+    get_spec,
+    plan_experiment,
+    run_experiment,
+    status_file,
+)
 from bati.experiments.sweep import SweepFailed, record_lock
 
 WIDE = 120
@@ -29,19 +39,19 @@ class ExperimentJob:
     name: str
     """The experiment (main, noise, context-length, ...), or `list`."""
     scale: ScaleName = "quick"
-    seeds: tuple[int, ...] | None = None
+    seeds: Annotated[tuple[int, ...] | None, DEFAULT_IN_DOC] = None
     """Training seeds (default: quick 0; cpu 0 1 2; paper 0 1 2 3 4)."""
-    methods: tuple[str, ...] = ()
+    methods: Annotated[tuple[str, ...], DEFAULT_IN_DOC] = ()
     """Keep only these of the experiment's methods (default: all of them)."""
-    families: tuple[str, ...] = ()
+    families: Annotated[tuple[str, ...], DEFAULT_IN_DOC] = ()
     """Keep only these of the experiment's families (default: all of them)."""
     settings: tuple[str, ...] = ()
     """KEY=VALUE TrainConfig settings for every cell, e.g. `steps=12000` (not those the experiment sets)."""
-    out_dir: Path | None = None
+    out_dir: Annotated[Path | None, DEFAULT_IN_DOC] = None
     """Results directory shared by the experiments (default: runs/experiments/<scale>; the committed studies:
     --out-dir results/<scale>/experiments); the report goes to OUT_DIR/<name>/."""
     data_root: Path = Path("data")
-    zoo_dir: Path | None = None
+    zoo_dir: Annotated[Path | None, DEFAULT_IN_DOC] = None
     """Where the experts of the families are (default: the shipped ones); a family of your own's
     `bati experts train` exports to runs/experts/<family>/zoo."""
     workers: int = 1

@@ -16,7 +16,9 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
+from bati.cli_hints import DEFAULT_IN_DOC
 from bati.config import ScaleName
 from bati.errors import PartialFailure
 from bati.experiments.sweep import Grid, SweepError, expand, sweep
@@ -47,14 +49,14 @@ class MainJob:
     """Any of bati, bati-r, bati-auto, recon, unicorn, csro, focal, er-trl, dpt, oracle, no-context; or `all`."""
     seeds: tuple[int, ...] = (0,)
     scale: ScaleName = "quick"
-    steps: int | None = None
+    steps: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Gradient steps (default: quick 12,000, where full BATI has converged on PointGoal; else the scale's)."""
-    noise: float | None = None
+    noise: Annotated[float | None, DEFAULT_IN_DOC] = None
     """Per-step noise eps (default: the family's)."""
-    out_dir: Path | None = None
+    out_dir: Annotated[Path | None, DEFAULT_IN_DOC] = None
     """Experiment directory (default runs/main/<family>-<scale>)."""
     data_root: Path = Path("data")
-    zoo_dir: Path | None = None
+    zoo_dir: Annotated[Path | None, DEFAULT_IN_DOC] = None
     """Where the family's expert is (default: the package zoo)."""
     workers: int = 1
     """Jobs (one method's seeds each) at a time."""

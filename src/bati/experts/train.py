@@ -12,15 +12,17 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import jax
 import numpy as np
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from bati.checks import check_integer, check_number
+from bati.cli_hints import DEFAULT_IN_DOC
 from bati.envs import TaskFamily, get_family
 from bati.envs.rollout import LockstepEnvs, rollout
+from bati.experts.per_task import TASK_AXES, default_task_axis
 from bati.experts.sac import (
     RESUME_IDENTITY,
     SAC,
@@ -29,7 +31,6 @@ from bati.experts.sac import (
     state_from_bytes,
     state_to_bytes,
 )
-from bati.experts.per_task import TASK_AXES, default_task_axis
 from bati.experts.zoo import save_expert
 from bati.io import append_jsonl, atomic_save_npz, check_directory, check_run_config
 from bati.processes import stall_watchdog
@@ -41,7 +42,7 @@ MAX_UPDATES_PER_STEP = 1_000.0
 @dataclass
 class ExpertTrainConfig:
     family: str
-    total_steps: int | None = None
+    total_steps: Annotated[int | None, DEFAULT_IN_DOC] = None
     """Environment transitions (default: the family's FamilyRecord.expert_steps; App. C.2 gives none:
     chosen by measured learning curves)."""
     num_envs: int = 4
@@ -53,9 +54,9 @@ class ExpertTrainConfig:
     checkpoint_every: int = 20_000
     eval_every: int = 20_000
     eval_tasks: int = 8
-    out_dir: Path | None = None
+    out_dir: Annotated[Path | None, DEFAULT_IN_DOC] = None
     """Run directory (default: runs/experts/<family>)."""
-    export_dir: Path | None = None
+    export_dir: Annotated[Path | None, DEFAULT_IN_DOC] = None
     """Zoo directory the finished actor is exported into, as <export_dir>/<family>/ (default: the run
     directory's zoo/, for `--zoo-dir RUN_DIR/zoo`); collect with `--zoo-dir` pointing there."""
     into_package: bool = False

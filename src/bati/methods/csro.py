@@ -23,11 +23,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
-from typing import Literal
+from typing import Annotated, Literal
 
 import jax
 import jax.numpy as jnp
 
+from bati.cli_hints import DEFAULT_IN_DOC
 from bati.envs.base import FamilyRecord, record_default
 from bati.methods.base import MethodSpec
 from bati.methods.focal import FOCAL, FOCALConfig
@@ -36,7 +37,7 @@ from bati.nets import GaussianHead, gaussian_log_prob
 
 @dataclass(frozen=True)
 class CSROConfig(FOCALConfig):
-    club_weight: float | None = None
+    club_weight: Annotated[float | None, DEFAULT_IN_DOC] = None
     """lambda, the CLUB term's weight (default: the family's, Table 3: FamilyRecord.club_weight)."""
     club_hidden_dims: tuple[int, ...] = (200, 200, 200)
     """Hidden sizes of the variational network q(z | s, a) (Table 3: 200 x 3)."""

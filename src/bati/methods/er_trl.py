@@ -26,12 +26,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Annotated, Literal
 
 import jax
 import jax.numpy as jnp
 
 from bati.checks import check_integer, check_number
+from bati.cli_hints import DEFAULT_IN_DOC
 from bati.envs.base import FamilyRecord, record_default
 from bati.methods.base import MethodSpec
 from bati.methods.focal import FOCAL, FOCALConfig
@@ -40,7 +41,7 @@ from bati.nets import MLP
 
 @dataclass(frozen=True)
 class ERTRLConfig(FOCALConfig):
-    entropy_weight: float | None = None
+    entropy_weight: Annotated[float | None, DEFAULT_IN_DOC] = None
     """lambda, the weight of the behaviour-entropy term (default: the family's, FamilyRecord.entropy_weight)."""
     noise_dim: int = 20
     """Dimension of the generator's Gaussian noise (the code's generator_dim)."""

@@ -8,9 +8,11 @@ same dynamics model p(r, s' | s, a, z) as BATI's and Recon's.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Annotated
 
 import jax
 
+from bati.cli_hints import DEFAULT_IN_DOC
 from bati.envs.base import FamilyRecord, record_default
 from bati.methods.base import MethodSpec
 from bati.methods.dynamics import DynamicsModel, context_nll, init_dynamics
@@ -19,7 +21,7 @@ from bati.methods.focal import FOCAL, FOCALConfig
 
 @dataclass(frozen=True)
 class UNICORNConfig(FOCALConfig):
-    focal_weight: float | None = None
+    focal_weight: Annotated[float | None, DEFAULT_IN_DOC] = None
     """w, the FOCAL term's weight (default: the family's, Table 3: FamilyRecord.unicorn_weight)."""
 
     def for_family(self, record: FamilyRecord | None) -> UNICORNConfig:

@@ -8,7 +8,7 @@ tanh-bounded mean; discrete actions (one-hot in the data) use a categorical acto
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Annotated, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -16,15 +16,15 @@ import optax
 import tyro
 from flax.training.train_state import TrainState
 
+from bati.cli_hints import DEFAULT_IN_DOC
 from bati.nets import MLP, CriticState, DoubleCritic, GaussianHead, gaussian_log_prob
-
 
 TABLE3_HIDDEN_DIMS = (256, 256)
 
 
 @dataclass(frozen=True)
 class IQLConfig:
-    hidden_dims: tuple[int, ...] | None = None
+    hidden_dims: Annotated[tuple[int, ...] | None, DEFAULT_IN_DOC] = None
     """Hidden sizes of the actor, critics and value net (default: Table 3's (256, 256); `bati train`
     fills in its scale's default: quick (128, 128))."""
     learning_rate: float = 3e-4
