@@ -151,126 +151,209 @@ def collect(
     roll out the episodes (default: all cores, at most one per chunk of CHUNK episodes); the
     datasets written are the same whatever their number. `tasks` changes which tasks train and test
     (counts, parameter ranges); a non-default split is its own collection (its label in the name).
-    `experts`: "conditioned" (the family's task-conditioned SAC) or "per-task" (one SAC per training task,
-    App. C.2); per-task data is its own collection (`-per-task-experts` in its name). `check_only`: collect
-    nothing, only raise what collecting would raise before any work (a collection of other sizes in its
+    `experts`: "per-task" (one SAC per training task, App. C.2; its collection ends in `-per-task-experts`) or
+    "conditioned" (the family's task-conditioned SAC); default: the family's (`family_experts`). `check_only`:
+    collect nothing, only raise what collecting would raise before any work (a collection of other sizes in its
     place, a data directory that is a file or not writable); returns None.
     """
     start = time.perf_counter()
     workers = check_workers(workers)
-    check_integer("seed", seed, low=0)  # a negative seed: one line now, not numpy's after the plan
-    fam = as_family(family)  # the caller's resolved family, or one looked up by name here
-    family = fam.name
-    check_supported(fam)
-    noise = fam.validate_noise(noise)
-    tasks = (tasks or TaskSplit()).checked(fam)
-    experts = family_experts(fam, experts, seed, tasks)
-    default_n, default_ctx = scale_sizes(fam, scale)
-    n_episodes = default_n if n_episodes is None else int(n_episodes)
-    n_context_episodes = default_ctx if n_context_episodes is None else int(n_context_episodes)
-    check_integer("n_episodes", n_episodes)
-    check_integer("n_context_episodes", n_context_episodes)
-    target = store.collection_dir(root, fam, scale, seed, noise, tasks, experts)
+    request = Request.resolve(family, scale, seed, noise, root, n_episodes, n_context_episodes, zoo_dir, tasks,
+                              experts)
+    target = request.target
     if not (target / store.MANIFEST).is_file():
-        check_fits(fam, n_episodes, n_context_episodes, tasks, root)
-
-    cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks, experts, zoo_dir)
+        check_fits(request.family, request.n_episodes, request.n_context_episodes, request.tasks, request.root)
+    cached = request.cached()
     if cached is not None:
         return None if check_only else CollectResult(target, cached, True, time.perf_counter() - start)
     check_directory(target.parent, "the data directory")  # a file, or not writable: say so before any work
     if check_only:
         return None
 
-    plan = make_plan(fam, seed, n_episodes, n_context_episodes, tasks, ties=collector_ties(experts))
-    n_chunks = -(-plan.n_episodes // CHUNK)
-    workers = min(default_workers() if workers is None else workers, n_chunks)
+    fam = request.family
+    plan = make_plan(fam, request.seed, request.n_episodes, request.n_context_episodes, request.tasks,
+                     ties=collector_ties(request.experts))
+    workers = min(default_workers() if workers is None else workers, -(-plan.n_episodes // CHUNK))
     if fam.name not in FAMILY_NAMES and not _from_plugin(fam.name):  # spawned workers would not know it
         workers = 1
     load_start = time.perf_counter()
-    expert = load_expert(fam, zoo_dir, experts)  # FileNotFoundError naming `bati experts train --family X`
-    if experts == "per-task":
-        expert.check_tasks(plan.train_tasks)  # trained for other tasks: one line, before any episode
+    expert, dims = _checked_expert(request, plan)
     timings = {"expert_load_s": time.perf_counter() - load_start}
-    probe = fam.make_env(plan.train_tasks[0], noise)
-    obs_dim, action_dim = probe.observation_space.shape[0], probe.action_space.shape[0]
-    probe.close()
-    # a trained expert records its sizes; a scripted one (register_expert) may not
-    if (expert.meta.get("obs_dim", obs_dim), expert.meta.get("action_dim", action_dim)) != (obs_dim, action_dim):
-        raise ValueError(
-            f"the {family} expert reads obs_dim={expert.meta['obs_dim']} / writes action_dim="
-            f"{expert.meta['action_dim']}, but the env has {obs_dim} / {action_dim}; retrain it with "
-            f"`bati experts train --family {family}`"
-        )
-
     target.parent.mkdir(parents=True, exist_ok=True)
     # one writer per collection: a second process fails at once naming the first (its pid, host)
     with hold_lock(store.lock_path(target), f"the collection {target}"):
         store.remove_stale_partials(target)
-        cached = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks, experts,
-                         zoo_dir)
+        cached = request.cached()
         if cached is not None:  # another process finished the same collection meanwhile
             return CollectResult(target, cached, True, time.perf_counter() - start)
         if target.exists():  # no manifest: an incomplete or foreign directory; start over
             stale = store.partial_dir(target)
             target.rename(stale)
             shutil.rmtree(stale, ignore_errors=True)
-        tmp = store.partial_dir(target)
-        tmp.mkdir()
+        return _write_collection(request, plan, expert, dims, workers, progress, timings, start)
+
+
+@dataclass(frozen=True)
+class Request:
+    """One collection's settings, resolved and checked (`resolve`): where it lies, what decides its content."""
+
+    family: TaskFamily
+    scale: str
+    seed: int
+    noise: float
+    root: Path
+    tasks: TaskSplit
+    experts: ExpertsKind
+    n_episodes: int
+    n_context_episodes: int
+    zoo_dir: str | Path | None = None
+
+    @classmethod
+    def resolve(cls, family, scale, seed, noise, root, n_episodes, n_context_episodes, zoo_dir, tasks,
+                experts) -> Request:
+        """Defaults filled (the scale's sizes, the family's eps and experts), every value checked (one line)."""
+        check_integer("seed", seed, low=0)  # a negative seed: one line now, not numpy's after the plan
+        fam = as_family(family)  # the caller's resolved family, or one looked up by name here
+        check_supported(fam)
+        tasks = (tasks or TaskSplit()).checked(fam)
+        default_n, default_ctx = scale_sizes(fam, scale)
+        n_episodes = default_n if n_episodes is None else int(n_episodes)
+        n_context_episodes = default_ctx if n_context_episodes is None else int(n_context_episodes)
+        check_integer("n_episodes", n_episodes)
+        check_integer("n_context_episodes", n_context_episodes)
+        return cls(fam, scale, seed, fam.validate_noise(noise), Path(root), tasks,
+                   family_experts(fam, experts, seed, tasks), n_episodes, n_context_episodes, zoo_dir)
+
+    @property
+    def target(self) -> Path:
+        return store.collection_dir(self.root, self.family, self.scale, self.seed, self.noise, self.tasks,
+                                    self.experts)
+
+    def command(self) -> str:
+        return store.collect_command(self.family, self.scale, self.seed, self.noise, self.root, self.tasks,
+                                     self.experts)
+
+    def settings(self) -> dict:
+        """Everything that decides the collection's content, in one place of its manifest: with the same
+        settings (and the same expert, by its sha256) a collection is reproduced file for file. (Per-task
+        experts add `experts` and `ties`; a collection by the conditioned expert records neither, as before
+        they existed.)"""
+        from bati.experts.per_task import PER_TASK_DIR
+        from bati.experts.zoo import ZOO_DIR
+
+        fam, experts = self.family, self.experts
+        entry = Path(self.zoo_dir or ZOO_DIR) / fam.name
+        actor = entry / PER_TASK_DIR / "actors.msgpack" if experts == "per-task" else entry / "actor.msgpack"
+        kind = {"experts": experts, "ties": collector_ties(experts)} if experts != "conditioned" else {}
+        return {**kind, "family": fam.name, "scale": self.scale, "seed": self.seed, "noise": self.noise,
+                "n_episodes": self.n_episodes, "n_context_episodes": self.n_context_episodes,
+                "episode_length": fam.record.episode_length, "chunk": CHUNK, "other_fraction": OTHER_FRACTION,
+                "task_split": self.tasks.record(), "expert_sha256": store.sha256_file(actor) if actor.is_file() else None}
+
+    def cached(self) -> dict | None:
+        """The manifest of the complete collection at `target`, None if there is none; ValueError (one line) for
+        one made with other sizes, or, by per-task experts, with other experts or another rule for tied
+        collectors."""
+        target, fam = self.target, self.family
+        if not (target / store.MANIFEST).is_file():
+            return None
+        manifest = store.read_manifest(target, fam, self.scale, self.seed, self.noise, self.root, self.tasks,
+                                       self.experts)
+        store.require_env_dims(target, manifest, fam, self.noise)  # the env changed since: not "already collected"
+        sizes = (manifest.get("n_episodes"), manifest.get("n_context_episodes"))
+        if sizes != (self.n_episodes, self.n_context_episodes):
+            raise ValueError(
+                f"{target} holds {sizes[0]} episodes per training task and {sizes[1]} per context dataset, "
+                f"not the requested {self.n_episodes} / {self.n_context_episodes}; delete it or give another data root"
+            )
+        if self.experts == "per-task":  # per-task experts are retrained: their old data must not pass for the new
+            saved, now = manifest.get("settings", {}), self.settings()
+            tied = "with the first of tied collectors for every episode"
+            for key, what in (("expert_sha256", "by other per-task experts"), ("ties", tied)):
+                if now[key] is not None and saved.get(key) != now[key]:
+                    raise ValueError(f"{target} was collected {what} than this bati's (its manifest's "
+                                     f"settings.{key}: {saved.get(key)!r}); delete it or give another data root")
+        return manifest
+
+
+def _checked_expert(request: Request, plan: Plan):
+    """The collection's expert(s) and the env's (obs_dim, action_dim); one line where they do not fit."""
+    fam = request.family
+    expert = load_expert(fam, request.zoo_dir, request.experts)  # FileNotFoundError naming `bati experts train`
+    if request.experts == "per-task":
+        expert.check_tasks(plan.train_tasks)  # trained for other tasks: one line, before any episode
+    probe = fam.make_env(plan.train_tasks[0], request.noise)
+    dims = probe.observation_space.shape[0], probe.action_space.shape[0]
+    probe.close()
+    # a trained expert records its sizes; a scripted one (register_expert) may not
+    if (expert.meta.get("obs_dim", dims[0]), expert.meta.get("action_dim", dims[1])) != dims:
+        raise ValueError(
+            f"the {fam.name} expert reads obs_dim={expert.meta['obs_dim']} / writes action_dim="
+            f"{expert.meta['action_dim']}, but the env has {dims[0]} / {dims[1]}; retrain it with "
+            f"`bati experts train --family {fam.name}`"
+        )
+    return expert, dims
+
+
+def _write_collection(request: Request, plan: Plan, expert, dims: tuple[int, int], workers: int, progress: bool,
+                      timings: dict, start: float) -> CollectResult:
+    """Roll out and write the collection into a partial directory, its manifest last, then move it into place
+    (the collection's lock held); an error leaves nothing."""
+    target, fam = request.target, request.family
+    tmp = store.partial_dir(target)
+    tmp.mkdir()
+    try:
+        base_meta = {"family": fam.name, "scale": request.scale, "seed": request.seed, "noise": request.noise,
+                     "commit": git_commit(), "collection_id": uuid.uuid4().hex}
+        timings.update(run_collection(fam, plan, expert, request.noise, request.seed, tmp, base_meta,
+                                      progress=progress, workers=workers, zoo_dir=request.zoo_dir,
+                                      experts=request.experts))
+        manifest = {
+            "format": store.FORMAT_VERSION,
+            **base_meta,
+            "n_episodes": request.n_episodes,
+            "n_context_episodes": request.n_context_episodes,
+            "episode_length": fam.record.episode_length,
+            "obs_dim": dims[0],
+            "action_dim": dims[1],
+            "task_dim": fam.task_dim,
+            "kind": fam.kind,
+            "family_version": fam.record.version,
+            "task_split": request.tasks.record(),
+            "train_tasks": plan.train_tasks,
+            "test_tasks": plan.test_tasks,
+            "p_test_most_different": plan.most_different,
+            "p_train_most_similar": plan.most_similar,
+            "datasets": {s: [d.name for d in plan.datasets if d.split == s] for s in store.SPLITS},
+            "transitions": plan.n_episodes * fam.record.episode_length,
+            "experts": request.experts,
+            "expert": {"train_steps": expert.meta.get("train_steps", expert.meta.get("train_steps_per_task")),
+                       "seed": expert.meta.get("seed")},
+            "collect_wall_time_s": round(time.perf_counter() - start, 2),
+            "workers": workers,  # how it was made, not what it is: not part of the cache identity
+            "timings_s": {k: round(v, 2) for k, v in timings.items()},
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "command": request.command(),
+            "settings": request.settings(),
+        }
+        manifest["files"] = store.file_checksums(tmp, manifest["datasets"])  # what verify and loads check
+        manifest[store.MANIFEST_DIGEST] = store.manifest_digest(manifest)  # an edit by hand is found
+        atomic_write_json(tmp / store.MANIFEST, manifest)  # written last
         try:
-            commit = git_commit()
-            collection_id = uuid.uuid4().hex
-            base_meta = {"family": family, "scale": scale, "seed": seed, "noise": noise, "commit": commit,
-                         "collection_id": collection_id}
-            timings.update(run_collection(fam, plan, expert, noise, seed, tmp, base_meta, progress=progress,
-                                          workers=workers, zoo_dir=zoo_dir, experts=experts))
-            manifest = {
-                "format": store.FORMAT_VERSION,
-                **base_meta,
-                "n_episodes": n_episodes,
-                "n_context_episodes": n_context_episodes,
-                "episode_length": fam.record.episode_length,
-                "obs_dim": obs_dim,
-                "action_dim": action_dim,
-                "task_dim": fam.task_dim,
-                "kind": fam.kind,
-                "family_version": fam.record.version,
-                "task_split": tasks.record(),
-                "train_tasks": plan.train_tasks,
-                "test_tasks": plan.test_tasks,
-                "p_test_most_different": plan.most_different,
-                "p_train_most_similar": plan.most_similar,
-                "datasets": {s: [d.name for d in plan.datasets if d.split == s] for s in store.SPLITS},
-                "transitions": plan.n_episodes * fam.record.episode_length,
-                "experts": experts,
-                "expert": {"train_steps": expert.meta.get("train_steps", expert.meta.get("train_steps_per_task")),
-                           "seed": expert.meta.get("seed")},
-                "collect_wall_time_s": round(time.perf_counter() - start, 2),
-                "workers": workers,  # how it was made, not what it is: not part of the cache identity
-                "timings_s": {k: round(v, 2) for k, v in timings.items()},
-                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-                "command": store.collect_command(fam, scale, seed, noise, root, tasks, experts),
-            }
-            manifest["settings"] = collection_settings(fam, scale, seed, noise, n_episodes,
-                                                       n_context_episodes, tasks, zoo_dir, experts)
-            manifest["files"] = store.file_checksums(tmp, manifest["datasets"])  # what verify and loads check
-            manifest[store.MANIFEST_DIGEST] = store.manifest_digest(manifest)  # an edit by hand is found
-            atomic_write_json(tmp / store.MANIFEST, manifest)  # written last
-            try:
-                tmp.rename(target)
-            except OSError:  # a concurrent collection finished first: keep its (identical) data
-                existing = _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes,
-                                   tasks, experts, zoo_dir)
-                if existing is None:
-                    raise
-                shutil.rmtree(tmp, ignore_errors=True)
-                return CollectResult(target, existing, True, time.perf_counter() - start)
-        except OSError as err:  # e.g. a full disk under Minari: nothing stays, the error names the collection
+            tmp.rename(target)
+        except OSError:  # a concurrent collection finished first: keep its (identical) data
+            existing = request.cached()
+            if existing is None:
+                raise
             shutil.rmtree(tmp, ignore_errors=True)
-            raise _naming_collection(err, target, tmp) from err
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        return CollectResult(target, manifest, False, time.perf_counter() - start)
+            return CollectResult(target, existing, True, time.perf_counter() - start)
+    except OSError as err:  # e.g. a full disk under Minari: nothing stays, the error names the collection
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise _naming_collection(err, target, tmp) from err
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return CollectResult(target, manifest, False, time.perf_counter() - start)
 
 
 def _naming_collection(err: OSError, target: Path, tmp: Path) -> OSError:
@@ -281,24 +364,6 @@ def _naming_collection(err: OSError, target: Path, tmp: Path) -> OSError:
     named = OSError(err.errno, err.strerror or str(err), str(target))
     named.__cause__ = err
     return named
-
-
-def collection_settings(family: TaskFamily, scale: str, seed: int, noise: float, n_episodes: int,
-                        n_context_episodes: int, tasks: TaskSplit, zoo_dir, experts: ExpertsKind) -> dict:
-    """Everything that decides a collection's content, in one place of its manifest: with the same
-    settings (and the same expert, by its sha256) a collection is reproduced file for file. (Per-task
-    experts add `experts` and `ties`; a collection by the conditioned expert records neither, as before they
-    existed.)"""
-    from bati.experts.per_task import PER_TASK_DIR
-    from bati.experts.zoo import ZOO_DIR
-
-    entry = Path(zoo_dir or ZOO_DIR) / family.name
-    actor = entry / PER_TASK_DIR / "actors.msgpack" if experts == "per-task" else entry / "actor.msgpack"
-    kind = {"experts": experts, "ties": collector_ties(experts)} if experts != "conditioned" else {}
-    return {**kind, "family": family.name, "scale": scale, "seed": seed, "noise": noise, "n_episodes": n_episodes,
-            "n_context_episodes": n_context_episodes, "episode_length": family.record.episode_length, "chunk": CHUNK,
-            "other_fraction": OTHER_FRACTION, "task_split": tasks.record(),
-            "expert_sha256": store.sha256_file(actor) if actor.is_file() else None}
 
 
 _EXPERTS: dict[tuple, Any] = {}
@@ -329,32 +394,6 @@ def load_expert(family: TaskFamily, zoo_dir: str | Path | None = None, experts: 
 def collector_ties(experts: str) -> str:
     """How a collection picks among tied collectors (`bati.data.plan`): per-task experts differ, so "drawn"."""
     return "drawn" if experts == "per-task" else "first"
-
-
-def _cached(target, fam, scale, seed, noise, root, n_episodes, n_context_episodes, tasks: TaskSplit,
-            experts: ExpertsKind, zoo_dir=None) -> dict | None:
-    """The manifest of a complete collection at `target`, None if there is none; ValueError (one line) for one
-    made with other sizes, or, by per-task experts, with other experts or another rule for tied collectors."""
-    if not (target / store.MANIFEST).is_file():
-        return None
-    manifest = store.read_manifest(target, fam, scale, seed, noise, root, tasks, experts)
-    store.require_env_dims(target, manifest, fam, noise)  # the env changed since: not "already collected"
-    sizes = (manifest.get("n_episodes"), manifest.get("n_context_episodes"))
-    if sizes != (n_episodes, n_context_episodes):
-        raise ValueError(
-            f"{target} holds {sizes[0]} episodes per training task and {sizes[1]} per context dataset, "
-            f"not the requested {n_episodes} / {n_context_episodes}; delete it or give another data root"
-        )
-    if experts == "per-task":  # per-task experts are retrained: their old data must not pass for the new
-        saved = manifest.get("settings", {})
-        now = collection_settings(fam, scale, seed, noise, n_episodes, n_context_episodes, tasks or TaskSplit(),
-                                  zoo_dir, experts)
-        for key, what in (("expert_sha256", "by other per-task experts"), ("ties", "with the first of tied "
-                                                                          "collectors for every episode")):
-            if now[key] is not None and saved.get(key) != now[key]:
-                raise ValueError(f"{target} was collected {what} than this bati's (its manifest's settings.{key}: "
-                                 f"{saved.get(key)!r}); delete it or give another data root")
-    return manifest
 
 
 def default_workers() -> int:
