@@ -340,65 +340,73 @@ def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("dat
     if not grids:
         raise SweepError("no grid to sweep")
     cells = list({c.id: c for g in grids for c in expand(g, out_dir, data_root)}.values())
-    if backend == "ray":
-        ray = connect_ray(address)
-    status = {c.id: ("skipped" if is_done(c) else "pending") for c in cells}
-    errors: dict[str, str] = {}
-    pending = [c for c in cells if status[c.id] == "pending"]
+    ray = connect_ray(address) if backend == "ray" else None
+    header = {**({"grid": asdict(grids[0])} if len(grids) == 1 else {"grids": [asdict(g) for g in grids]}),
+              "data_root": str(data_root), "backend": backend, "workers": workers}
+    progress = _SweepStatus(cells, out_dir / status_file, header, on_job_done)
+    pending = [c for c in cells if progress.status[c.id] == "pending"]
     jobs = make_jobs(pending)
-
-    def record() -> None:
-        atomic_write_json(out_dir / status_file, {
-            **({"grid": asdict(grids[0])} if len(grids) == 1 else {"grids": [asdict(g) for g in grids]}),
-            "data_root": str(data_root), "backend": backend, "workers": workers,
-            "cells": {c.id: {"label": c.label, "run_dir": str(c.config.out_dir), "status": status[c.id],
-                             **({"error": errors[c.id]} if c.id in errors else {})} for c in cells},
-        })
-
     check_experts(pending)
     prepare_data(pending, progress=False, check_only=True)  # before the status file is written
-    record()
+    progress.record()
     if jobs:
         prepare_data(pending, progress=show_progress)
-    table = LiveTable(cells, status, show_progress)
-    with table:
-        references: dict[str, dict] = {}  # collection -> its random and expert returns, computed once
-
-        def arguments(job: Job) -> tuple:
-            also = tuple(dict.fromkeys(c.config.method for c in job.alongside))
-            return job.config, job.seeds, job.config.out_dir.parent, references.get(collection_key(job.config)), also
-
-        def finished(job: Job, error: str | None, summaries: list[dict] | None = None) -> None:
-            for cell in job.cells:
-                status[cell.id] = "failed" if error else "done"
-                if error:
-                    errors[cell.id] = error
-            for cell in job.alongside:  # done when its run finished alongside (or already was, on its own)
-                if error or not is_done(cell):
-                    status[cell.id] = "failed"
-                    errors[cell.id] = error or (f"not evaluated alongside {job.config.method} (its run directory "
-                                                "holds a run of its own): rerun the sweep to train it")
-                else:
-                    status[cell.id] = "done"
-            if summaries and summaries[0].get("reference_returns"):
-                references.setdefault(collection_key(job.config), summaries[0]["reference_returns"])
-            record()
-            table.refresh()
-            table.log(job, f"failed ({error})" if error else "done")
-            if on_job_done is not None and not error:
-                on_job_done([cell for cell in job.cells + job.alongside if status[cell.id] == "done"])
-
-        def running(job: Job) -> None:
-            for cell in job.cells + job.alongside:
-                status[cell.id] = "running"
-            table.refresh()
-            table.log(job, "running")
-
-        if backend == "ray":
-            _run_on_ray(ray, jobs, workers, arguments, running, finished)
+    progress.table = LiveTable(cells, progress.status, show_progress)
+    with progress.table:
+        if ray is not None:
+            _run_on_ray(ray, jobs, workers, progress.arguments, progress.running, progress.finished)
         else:
-            _run_locally(jobs, workers, arguments, running, finished)
-    return SweepResult(out_dir, {c.id: status[c.id] for c in cells}, errors, time.perf_counter() - start)
+            _run_locally(jobs, workers, progress.arguments, progress.running, progress.finished)
+    return SweepResult(out_dir, dict(progress.status), progress.errors, time.perf_counter() - start)
+
+
+class _SweepStatus:
+    """A sweep's cells as its jobs run: each cell's status and error, the status file (rewritten at each change),
+    the live table, and the reference returns each collection's first job computes for the others."""
+
+    def __init__(self, cells: list[Cell], path: Path, header: dict,
+                 on_job_done: Callable[[list[Cell]], None] | None):
+        self.cells, self.path, self.header, self.on_job_done = cells, path, header, on_job_done
+        self.status = {c.id: ("skipped" if is_done(c) else "pending") for c in cells}
+        self.errors: dict[str, str] = {}
+        self.references: dict[str, dict] = {}  # collection -> its random and expert returns, computed once
+        self.table: LiveTable | None = None
+
+    def record(self) -> None:
+        atomic_write_json(self.path, {**self.header, "cells": {
+            c.id: {"label": c.label, "run_dir": str(c.config.out_dir), "status": self.status[c.id],
+                   **({"error": self.errors[c.id]} if c.id in self.errors else {})} for c in self.cells}})
+
+    def arguments(self, job: Job) -> tuple:
+        also = tuple(dict.fromkeys(c.config.method for c in job.alongside))
+        return (job.config, job.seeds, job.config.out_dir.parent, self.references.get(collection_key(job.config)),
+                also)
+
+    def running(self, job: Job) -> None:
+        for cell in job.cells + job.alongside:
+            self.status[cell.id] = "running"
+        self.table.refresh()
+        self.table.log(job, "running")
+
+    def finished(self, job: Job, error: str | None, summaries: list[dict] | None = None) -> None:
+        for cell in job.cells:
+            self.status[cell.id] = "failed" if error else "done"
+            if error:
+                self.errors[cell.id] = error
+        for cell in job.alongside:  # done when its run finished alongside (or already was, on its own)
+            if error or not is_done(cell):
+                self.status[cell.id] = "failed"
+                self.errors[cell.id] = error or (f"not evaluated alongside {job.config.method} (its run directory "
+                                                 "holds a run of its own): rerun the sweep to train it")
+            else:
+                self.status[cell.id] = "done"
+        if summaries and summaries[0].get("reference_returns"):
+            self.references.setdefault(collection_key(job.config), summaries[0]["reference_returns"])
+        self.record()
+        self.table.refresh()
+        self.table.log(job, f"failed ({error})" if error else "done")
+        if self.on_job_done is not None and not error:
+            self.on_job_done([cell for cell in job.cells + job.alongside if self.status[cell.id] == "done"])
 
 
 def sweep_and_show(job: SweepJob, *, console, error_console) -> None:
