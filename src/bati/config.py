@@ -248,56 +248,14 @@ class TrainConfig:
         object, its collection), every value checked before any work. `family`: the config's family when the
         caller has looked it up already (one lookup by name per entry point)."""
         own = bool(self.datasets)
-        if own and self.family not in (None, OWN_FAMILY):
-            raise ValueError(f"--datasets trains on your own data (family {OWN_FAMILY!r}), not on {self.family}: "
-                             "leave out --family")
-        if not own and self.family == OWN_FAMILY:
-            raise ValueError(f"family {OWN_FAMILY!r} is your own data: give it with --datasets")
-        if not own and (self.task_key is not None or self.held_out != TrainConfig.held_out):
-            name = "--task-key" if self.task_key is not None else "--held-out"
-            raise ValueError(f"{name} applies to your own data: give it with --datasets")
-        if self.eval_env is not None:
-            if not own:
-                raise ValueError(f"--eval-env is your own data's env: the families' envs are built in (the "
-                                 f"{self.family or 'PointGoal'} runs are evaluated in theirs)")
-            from bati.data.own import check_eval_env
-
-            check_eval_env(self.eval_env, self.task_key)
+        self._check_data_source(own)
         name = OWN_FAMILY if own else (self.family or "PointGoal")
         if family is None:
             family = family_of(name, self.context_length)  # TaskError for an unknown family
         elif family.name != name:
             raise ValueError(f"resolving a {name} config with the family {family.name}")
-        if self.method not in METHODS:
-            raise ValueError(f"unknown method {self.method!r}; choose one of: {', '.join(METHODS)}")
+        self._check_values(family)
         scale = get_scale(self.scale)
-        for setting in ("steps", "task_batch", "batch_size", "context_length", "eval_context_length", "eval_every",
-                        "checkpoint_every", "log_every", "episodes_per_task", "context_episodes", "eval_workers"):
-            if getattr(self, setting) is not None:  # None: the default; 0 is refused, never the default
-                check_integer(setting, getattr(self, setting))
-        for setting in ("seed", "data_seed"):
-            check_integer(setting, getattr(self, setting), low=0)
-        for setting, value in (("learning_rate", self.learning_rate), ("iql.learning_rate", self.iql.learning_rate),
-                               ("iql.temperature", self.iql.temperature),
-                               ("iql.max_exp_advantage", self.iql.max_exp_advantage)):
-            check_number(setting, value)
-        check_number("iql.expectile", self.iql.expectile, below=1.0)  # 1 (or 0): V ignores one side of Q
-        for setting in ("discount", "tau"):
-            check_number(f"iql.{setting}", getattr(self.iql, setting), at_most=1.0)
-        check_sinks(self.log_to)  # an unknown sink, or its package missing: before any work
-        check_foreign_sections(self, family.record)
-        section = self.method_config()
-        if is_dataclass(section):
-            check_finite_fields(method_config_key(self.method), section)
-        if hasattr(section, "check"):
-            section.check(method_config_key(self.method))
-        layers = {"iql.hidden_dims": self.iql.hidden_dims}
-        if is_dataclass(section):
-            layers |= {f"{method_config_key(self.method)}.{f.name}": getattr(section, f.name) for f in fields(section)
-                       if f.name.endswith("hidden_dims")}
-        for setting, dims in layers.items():
-            if dims is not None:
-                check_hidden_dims(setting, dims)
         pick = lambda value, default: default if value is None else value  # noqa: E731
         steps = pick(self.steps, scale.steps)
         tenth = max(self.log_every, (steps // 10) // self.log_every * self.log_every)
@@ -337,35 +295,94 @@ class TrainConfig:
             iql=replace(self.iql, hidden_dims=tuple(rl_dims), discrete=family.discrete_actions),
             **{name: _for_family(getattr(self, name), family.record) for name in method_sections()},
         )
-        if own and resolved.eval_context_length > context_length:
-            raise ValueError(f"eval_context_length ({resolved.eval_context_length}) must be at most context_length "
-                             f"({context_length}): your episodes are cut into segments of context_length")
-        if not own:  # a context is cut from one test task's context data: it cannot be longer than they are
-            from bati.data.collect import scale_sizes
-
-            episodes = pick(resolved.context_episodes, scale_sizes(family, resolved.data_scale)[1])
-            held = episodes * family.record.episode_length
-            for setting in ("context_length", "eval_context_length"):
-                if getattr(resolved, setting) > held:
-                    raise ValueError(f"{setting} ({getattr(resolved, setting)}) must be at most the {held:,} transitions "
-                                     f"of a test task's context data ({episodes} episodes of "
-                                     f"{family.record.episode_length}; more: --context-episodes)")
-        if self.method == "dpt" and resolved.dpt.max_length < max(context_length, resolved.eval_context_length):
-            raise ValueError(f"dpt.max_length ({resolved.dpt.max_length}) must be >= the context length "
-                             f"({max(context_length, resolved.eval_context_length)}): the transformer's positions "
-                             "cover max_length transitions")
-        if not own and resolved.task_batch > split.n_train:
-            raise ValueError(f"task_batch ({resolved.task_batch}) must be at most n_train_tasks ({split.n_train}): "
-                             "a batch draws distinct training tasks")
-        if resolved.eval_every % self.log_every or resolved.checkpoint_every % self.log_every:
-            raise ValueError(f"eval_every ({resolved.eval_every}) and checkpoint_every ({resolved.checkpoint_every}) "
-                             f"must be multiples of log_every ({self.log_every})")
+        _check_resolved(resolved, family, split)
         collection = None if own else Collection(
             family, resolved.data_scale, resolved.data_seed, resolved.noise, resolved.data_root, resolved.task_split(),
             resolved.experts, resolved.episodes_per_task, resolved.context_episodes)
         if collection is not None:
             collection.check_fits()  # a size that would exhaust the machine: one line, before any record
         return ResolvedRun(resolved, family, collection)
+
+
+    def _check_data_source(self, own: bool) -> None:
+        """Your own data (--datasets) or a family's collection, with the settings that belong to it (one line)."""
+        if own and self.family not in (None, OWN_FAMILY):
+            raise ValueError(f"--datasets trains on your own data (family {OWN_FAMILY!r}), not on {self.family}: "
+                             "leave out --family")
+        if not own and self.family == OWN_FAMILY:
+            raise ValueError(f"family {OWN_FAMILY!r} is your own data: give it with --datasets")
+        if not own and (self.task_key is not None or self.held_out != TrainConfig.held_out):
+            name = "--task-key" if self.task_key is not None else "--held-out"
+            raise ValueError(f"{name} applies to your own data: give it with --datasets")
+        if self.eval_env is not None:
+            if not own:
+                raise ValueError(f"--eval-env is your own data's env: the families' envs are built in (the "
+                                 f"{self.family or 'PointGoal'} runs are evaluated in theirs)")
+            from bati.data.own import check_eval_env
+
+            check_eval_env(self.eval_env, self.task_key)
+
+    def _check_values(self, family: TaskFamily) -> None:
+        """Every number, sink and method section of the config checked (one line each), before any default."""
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; choose one of: {', '.join(METHODS)}")
+        for setting in ("steps", "task_batch", "batch_size", "context_length", "eval_context_length", "eval_every",
+                        "checkpoint_every", "log_every", "episodes_per_task", "context_episodes", "eval_workers"):
+            if getattr(self, setting) is not None:  # None: the default; 0 is refused, never the default
+                check_integer(setting, getattr(self, setting))
+        for setting in ("seed", "data_seed"):
+            check_integer(setting, getattr(self, setting), low=0)
+        for setting, value in (("learning_rate", self.learning_rate), ("iql.learning_rate", self.iql.learning_rate),
+                               ("iql.temperature", self.iql.temperature),
+                               ("iql.max_exp_advantage", self.iql.max_exp_advantage)):
+            check_number(setting, value)
+        check_number("iql.expectile", self.iql.expectile, below=1.0)  # 1 (or 0): V ignores one side of Q
+        for setting in ("discount", "tau"):
+            check_number(f"iql.{setting}", getattr(self.iql, setting), at_most=1.0)
+        check_sinks(self.log_to)  # an unknown sink, or its package missing: before any work
+        check_foreign_sections(self, family.record)
+        section = self.method_config()
+        if is_dataclass(section):
+            check_finite_fields(method_config_key(self.method), section)
+        if hasattr(section, "check"):
+            section.check(method_config_key(self.method))
+        layers = {"iql.hidden_dims": self.iql.hidden_dims}
+        if is_dataclass(section):
+            layers |= {f"{method_config_key(self.method)}.{f.name}": getattr(section, f.name) for f in fields(section)
+                       if f.name.endswith("hidden_dims")}
+        for setting, dims in layers.items():
+            if dims is not None:
+                check_hidden_dims(setting, dims)
+
+def _check_resolved(resolved: TrainConfig, family: TaskFamily, split: TaskSplit | None) -> None:
+    """What only the filled-in values can tell (one line): contexts longer than the data that holds them, a batch of
+    more tasks than train, evaluations off the logging grid."""
+    own, context_length = split is None, resolved.context_length
+    if own and resolved.eval_context_length > context_length:
+        raise ValueError(f"eval_context_length ({resolved.eval_context_length}) must be at most context_length "
+                         f"({context_length}): your episodes are cut into segments of context_length")
+    if not own:  # a context is cut from one test task's context data: it cannot be longer than they are
+        from bati.data.collect import scale_sizes
+
+        episodes = resolved.context_episodes
+        if episodes is None:
+            episodes = scale_sizes(family, resolved.data_scale)[1]
+        held = episodes * family.record.episode_length
+        for setting in ("context_length", "eval_context_length"):
+            if getattr(resolved, setting) > held:
+                raise ValueError(f"{setting} ({getattr(resolved, setting)}) must be at most the {held:,} transitions "
+                                 f"of a test task's context data ({episodes} episodes of "
+                                 f"{family.record.episode_length}; more: --context-episodes)")
+    if resolved.method == "dpt" and resolved.dpt.max_length < max(context_length, resolved.eval_context_length):
+        raise ValueError(f"dpt.max_length ({resolved.dpt.max_length}) must be >= the context length "
+                         f"({max(context_length, resolved.eval_context_length)}): the transformer's positions "
+                         "cover max_length transitions")
+    if not own and resolved.task_batch > split.n_train:
+        raise ValueError(f"task_batch ({resolved.task_batch}) must be at most n_train_tasks ({split.n_train}): "
+                         "a batch draws distinct training tasks")
+    if resolved.eval_every % resolved.log_every or resolved.checkpoint_every % resolved.log_every:
+        raise ValueError(f"eval_every ({resolved.eval_every}) and checkpoint_every ({resolved.checkpoint_every}) "
+                         f"must be multiples of log_every ({resolved.log_every})")
 
 
 @dataclass(frozen=True)
