@@ -418,6 +418,24 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "", selection: P
         sections.append("**Statistics over seeds** (rliable: IQM and probability of improvement with 95% "
                         "stratified-bootstrap intervals, as `bati report`)\n")
         sections += [group_table(g, method_rows(g), group_title(g, [])) for g in seeded]
+    figures, curve_rows = _figures(spec, plan, runs, records, groups, out_dir)
+    header = _header(plan, selection, records, runs, command)
+    markdown = "\n".join(line for line in header if line is not None) + "\n" + "\n".join(sections)
+    markdown += "".join(f"\n![{name}]({name})\n" for name in figures)
+    atomic_write_text(out_dir / "report.md", markdown)
+    atomic_write_text(out_dir / "table.csv", _csv_text(("metric",) + CSV_FIELDS, csv_rows))
+    if curve_rows:
+        atomic_write_text(out_dir / "curves.csv", _csv_text(CURVE_FIELDS, curve_rows))
+    for old in [*out_dir.glob("curves-*.png"), *out_dir.glob("profile*.png"), out_dir / "vs.png", out_dir / "tsne.png"]:
+        if old.name not in figures:  # an earlier report's figure (other families or settings): not this one's
+            old.unlink(missing_ok=True)
+    files = [out_dir / "report.md", out_dir / "table.csv"] + [out_dir / "curves.csv"] * bool(curve_rows)
+    files += [out_dir / f for f in figures]
+    return {"markdown": markdown, "files": files, "records": records, "cells_done": len(runs)}
+
+
+def _figures(spec, plan: Plan, runs: list, records: list[dict], groups: list, out_dir: Path) -> tuple[list[str], list]:
+    """The report's figures (their file names) and the learning curves' rows of curves.csv."""
     figures = []
     by_experts: dict[str, list] = {}
     for run in runs:  # one profile per data setting: pooling two settings' runs would count a method twice
@@ -438,15 +456,20 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "", selection: P
             if plot_group(group, out_dir / name, f"{spec.name}: {group.slug}", "return"):
                 figures.append(name)
             curve_rows += [row for run in group.runs for row in curve_records(group.slug, run)]
+    return figures, curve_rows
+
+
+def _header(plan: Plan, selection: Plan | None, records: list[dict], runs: list, command: str) -> list[str | None]:
+    """The report's header lines: its command, cells, commits and devices, wall time and how numbers are read."""
+    spec = plan.spec
     commits = sorted({r["commit"] for r in records if r.get("commit")})
     devices = sorted({r["device"] for r in records if r.get("device")})
     train_wall = jobs_wall_time(((run.path.parent.parent, run.method), run.total_wall_time()) for run in runs)
-    n_done = len(runs)
     header = [
         f"# Experiment `{spec.name}` ({plan.scale} scale)", "", spec.title + ".", "",
         f"Paper's claim: {spec.claim}.", "",
         f"- command: `{command}`" if command else "",
-        cells_line(plan, selection, n_done),
+        cells_line(plan, selection, len(runs)),
         f"- commit(s): {', '.join(short_commit(c) for c in commits) or 'unknown'}; "
         f"device(s): {', '.join(devices) or 'unknown'}",
         (f"- **{changed} run(s) from code with uncommitted changes** (their commit alone does not give them back)"
@@ -458,15 +481,4 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "", selection: P
            else ""),
         "",
     ]
-    markdown = "\n".join(line for line in header if line is not None) + "\n" + "\n".join(sections)
-    markdown += "".join(f"\n![{name}]({name})\n" for name in figures)
-    atomic_write_text(out_dir / "report.md", markdown)
-    atomic_write_text(out_dir / "table.csv", _csv_text(("metric",) + CSV_FIELDS, csv_rows))
-    if curve_rows:
-        atomic_write_text(out_dir / "curves.csv", _csv_text(CURVE_FIELDS, curve_rows))
-    for old in [*out_dir.glob("curves-*.png"), *out_dir.glob("profile*.png"), out_dir / "vs.png", out_dir / "tsne.png"]:
-        if old.name not in figures:  # an earlier report's figure (other families or settings): not this one's
-            old.unlink(missing_ok=True)
-    files = [out_dir / "report.md", out_dir / "table.csv"] + [out_dir / "curves.csv"] * bool(curve_rows)
-    files += [out_dir / f for f in figures]
-    return {"markdown": markdown, "files": files, "records": records, "cells_done": n_done}
+    return header
