@@ -83,8 +83,7 @@ class ExpertsCard:
     """Seed of the train/test task split (the same as `bati data collect --seed`)."""
     zoo_dir: Path | None = None
     experts: Annotated[ExpertsKind | None, DEFAULT_IN_DOC] = None
-    """The family's per-task experts (card in <zoo>/<family>/per-task/) or its task-conditioned expert (default:
-    per-task where the family has them)."""
+    """Per-task experts (card in <zoo>/<family>/per-task/; the default where the family has them) or conditioned."""
 
     def run(self) -> None:
         card = write_card(self.family, self.seed, self.zoo_dir, self.experts)
@@ -107,9 +106,8 @@ class ExpertsMerge:
     def run(self) -> None:
         if self.into_package == (self.export_dir is not None):
             raise ValueError("give either --export-dir or --into-package (where the merged experts go)")
-        family = get_family(self.family)
         zoo = ZOO_DIR if self.into_package else self.export_dir
-        meta = merge_per_task_experts(family, list(self.parts), zoo, package=self.into_package)
+        meta = merge_per_task_experts(get_family(self.family), list(self.parts), zoo, package=self.into_package)
         console.print(f"{len(meta['task_indices'])} per-task experts of {self.family} (tasks {meta['task_indices']}, "
                       f"{meta['parts']} parts) written to {zoo}", soft_wrap=True)
 
@@ -322,8 +320,7 @@ def _stopped(argv, code: int) -> int:
     when Ctrl-C came during the first compilation. A caller of main() gets the code and keeps its process."""
     if argv is not None:
         return code
-    sys.stdout.flush()
-    sys.stderr.flush()
+    sys.stdout.flush(), sys.stderr.flush()
     os._exit(code)
 
 
