@@ -371,3 +371,18 @@ def test_the_default_experts_are_per_task_where_they_were_trained_for_the_tasks(
     assert paths[None].name == "quick-seed0-eps1-per-task-experts" and paths["conditioned"].name == "quick-seed0-eps1"
     assert store.collect_command(point, "quick", 0, 1.0, "data").endswith("--seed 0")
     assert store.collect_command(point, "quick", 0, 1.0, "data", experts="conditioned").endswith("--experts conditioned")
+
+
+def test_dpt_labels_take_each_tasks_own_expert():
+    """DPT's labels on (B, T) rows of B tasks: each task's per-task expert on its rows (B actors gathered), the
+    same as asking row by row; a test task's label is its most similar training task's expert's."""
+    expert = load("PointGoal", kind="per-task")
+    family = get_family("PointGoal")
+    train, test = family.split_tasks(0)
+    tasks = np.stack([family.task_to_array(t) for t in [train[3], train[7], test[0]]]).astype(np.float32)
+    obs = np.random.default_rng(0).uniform(-1, 1, (3, 5, 2)).astype(np.float32)
+    labels = np.asarray(jax.jit(expert.task_mean_actions)(obs, tasks))
+    rows = np.asarray(expert.mean_action(obs, np.broadcast_to(tasks[:, None], (3, 5, 2))))
+    np.testing.assert_allclose(labels, rows, atol=1e-6)
+    own = expert.act_for_collectors(obs[0], np.full(5, 3), tasks[[0] * 5], True, jax.random.PRNGKey(0))
+    np.testing.assert_allclose(labels[0], own, atol=1e-6)

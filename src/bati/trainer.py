@@ -75,9 +75,7 @@ class Trainer:
             batch["positive_context"] = sample_contexts(data, jax.random.fold_in(k_context, 1), batch["task_ids"],
                                                         c.context_length)
         if self.method.needs_expert_actions:
-            task_arrays = jnp.broadcast_to(batch["task_arrays"][:, None], batch["observations"].shape[:2] +
-                                           batch["task_arrays"].shape[-1:])
-            batch["expert_actions"] = self.expert.mean_action(batch["observations"], task_arrays)
+            batch["expert_actions"] = self.expert.task_mean_actions(batch["observations"], batch["task_arrays"])
         return batch
 
     def step(self, state: TrainState, key: jax.Array, data) -> tuple[TrainState, dict]:

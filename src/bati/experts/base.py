@@ -52,3 +52,9 @@ class Expert:
 
     def mean_action(self, obs: jax.Array, task_arrays: jax.Array) -> jax.Array:
         raise NotImplementedError
+
+    def task_mean_actions(self, obs: jax.Array, task_arrays: jax.Array) -> jax.Array:
+        """Deterministic actions on a batch of tasks' rows (DPT's labels): `obs` (B, T, obs_dim), each row of
+        `obs[b]` in task b, `task_arrays` (B, task_dim); a jax function (inside a jitted training step)."""
+        tasks = jax.numpy.broadcast_to(task_arrays[:, None], obs.shape[:2] + task_arrays.shape[-1:])
+        return self.mean_action(obs, tasks)

@@ -360,11 +360,17 @@ class PerTaskExperts(Expert):
         return self.act_for_collectors(obs, self.nearest(np.atleast_2d(task_arrays)), task_arrays, deterministic, key)
 
     def mean_action(self, obs: jax.Array, task_arrays: jax.Array) -> jax.Array:
-        """Deterministic actions of each row's task's expert, for rows of any leading shape (DPT's labels: (B, T)
-        rows; every actor runs on every row, then each row takes its task's)."""
+        """Deterministic actions of each row's task's expert, for rows of any leading shape (every actor runs on
+        every row, then each row takes its task's)."""
         rows, tasks = obs.reshape(-1, obs.shape[-1]), task_arrays.reshape(-1, task_arrays.shape[-1])
         actions = self._act(self.actors, rows, self.nearest(tasks), jax.random.PRNGKey(0), True)
         return actions.reshape(*obs.shape[:-1], actions.shape[-1])
+
+    def task_mean_actions(self, obs: jax.Array, task_arrays: jax.Array) -> jax.Array:
+        """DPT's labels, (B, T) rows of B tasks: each task's expert on its own rows only (B actors gathered)."""
+        experts = self.nearest(task_arrays)
+        actors = jax.tree.map(lambda leaf: jnp.asarray(leaf)[experts], self.actors)
+        return jnp.tanh(jax.vmap(lambda actor, rows: self._sac.actor_net.apply(actor, rows)[0])(actors, obs))
 
     def check_tasks(self, train_tasks: list) -> None:
         """ValueError unless these experts were trained for exactly `train_tasks` (a collection's)."""
