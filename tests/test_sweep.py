@@ -351,3 +351,22 @@ def test_a_collection_of_other_sizes_in_the_data_root_is_one_line_before_the_rec
     assert "holds 2 episodes per training task" in err and "another data root" in err
     assert (out / "sweep.json").read_text() == "the last sweep's record"
     assert sorted(p.name for p in out.iterdir()) == ["sweep.json"]
+
+
+def test_the_live_table_shows_a_running_jobs_steps_and_time_left(tmp_path, monkeypatch):
+    """Each job's steps; a running job's logged steps of its total and the time left at its rate so far."""
+    cells = expand(Grid(methods=("bati", "recon"), settings=("steps=1000",)), tmp_path)
+    status = {c.id: "pending" for c in cells}
+    table = sweep_module.LiveTable(cells, status, enabled=False)
+    bati_job = next(job for job in make_jobs(cells) if job.config.method == "bati")
+    clock = iter([100.0, 160.0, 160.0])  # started at 100 s; 60 s later, a quarter of the steps done
+    monkeypatch.setattr(sweep_module.time, "perf_counter", lambda: next(clock))
+    table.log(bati_job, "running")
+    for cell in bati_job.cells:
+        status[cell.id] = "running"
+    run = bati_job.cells[0].config.out_dir
+    run.mkdir(parents=True)
+    (run / "metrics.jsonl").write_text('{"step": 100}\n{"step": 250}\n{"step": 2')  # the last line half written
+    assert table.progress(bati_job) == "250 / 1,000, ~3 min left"  # 60 s for 250 steps: 180 s for 750
+    rows = {tuple(row) for row in zip(*(column._cells for column in table.render().columns))}
+    assert ("PointGoal", "quick", "1", "per-task experts", "recon", "0", "1,000", "pending") in rows

@@ -547,7 +547,7 @@ class LiveTable:
         counts = {s: sum(v == s for v in self.status.values()) for s in ("pending", "running", "done", "failed",
                                                                           "skipped")}
         table = Table(title="bati sweep: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n))
-        for column in ("family", "scale", "eps", "data", "method", "seeds", "status"):
+        for column in ("family", "scale", "eps", "data", "method", "seeds", "steps", "status"):
             table.add_column(column)
         style = {"done": "green", "failed": "red", "running": "yellow", "skipped": "dim"}
         for job in make_jobs(self.cells, share_training=False):
@@ -555,20 +555,47 @@ class LiveTable:
             text = "/".join(states)
             c = job.config
             table.add_row(c.family, c.scale, f"{c.noise:g}", cell_data(c), c.method, " ".join(map(str, job.seeds)),
+                          self.progress(job) if text == "running" else f"{c.steps:,}",
                           f"[{style.get(text, '')}]{text}" if text in style else text)
         return table
 
+    def __rich__(self):  # rich's Live draws the table afresh at each refresh: a running job's steps move
+        return self.render()
+
+    def progress(self, job: Job) -> str:
+        """A running job's logged steps of its total and the time left at its rate since this sweep started it
+        ("12,300 / 100,000, ~41 min left"); its total alone before its first log line."""
+        total, started = job.config.steps, self.started.get(id(job))
+        step, log = 0, job.cells[0].config.out_dir / "metrics.jsonl"
+        try:
+            with open(log, "rb") as file:
+                file.seek(max(0, log.stat().st_size - 4096))
+                lines = file.read().decode(errors="replace").splitlines()
+        except OSError:  # no log yet: the total alone
+            lines = []
+        for line in reversed(lines):  # the last whole line (the newest may be half written)
+            try:
+                step = int(json.loads(line)["step"])
+                break
+            except (ValueError, KeyError, TypeError):
+                continue
+        done = f"{step:,} / {total:,}"
+        if not step or started is None or step >= total:
+            return done
+        left = (time.perf_counter() - started) * (total - step) / step
+        return f"{done}, ~{left / 60:.0f} min left"
+
     def refresh(self) -> None:
         if self.live is not None:
-            self.live.update(self.render())
+            self.live.refresh()
 
     def log(self, job: Job, state: str) -> None:
         """Without the live table (output to a file or a pipe, e.g. a background run's log): one line on stderr
         per job as it starts and as it ends, with its wall time, so a log shows where a sweep stands."""
-        if self.enabled:
-            return
         now = time.perf_counter()
         started = self.started.setdefault(id(job), now)
+        if self.enabled:
+            return
         c = job.config
         also = ", ".join(dict.fromkeys(cell.config.method for cell in job.alongside))
         seeds = " ".join(map(str, job.seeds))
@@ -581,7 +608,7 @@ class LiveTable:
         if self.enabled:
             from rich.live import Live
 
-            self.live = Live(self.render(), refresh_per_second=2)
+            self.live = Live(self, refresh_per_second=1)
             self.live.__enter__()
         return self
 
