@@ -83,12 +83,14 @@ def _collect(env, episodes: int) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
+    parser = argparse.ArgumentParser(description="docs/own-data.md end to end: the GoalLine Minari dataset, "
+                                     "every method of METHODS trained on it, one report.",
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("runs/own-data/goalline"),
                         help="where the dataset, runs and report go (the committed study: results/own-data/goalline)")
-    parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--episodes", type=int, default=30, help="episodes per goal")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--steps", type=int, default=3000, help="gradient steps of each run")
+    parser.add_argument("--episodes", type=int, default=30, help="episodes per goal in the dataset")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="training seeds of each method")
     args = parser.parse_args()
     from bati.cli import main as bati
     from bati.io import atomic_write_text, git_commit
