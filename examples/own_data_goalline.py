@@ -84,7 +84,7 @@ def _collect(env, episodes: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description="docs/own-data.md end to end: the GoalLine Minari dataset, "
-                                     "every method of METHODS trained on it, one report.",
+                                     f"{', '.join(METHODS)} trained on it, one report.",
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("runs/own-data/goalline"),
                         help="where the dataset, runs and report go (the committed study: results/own-data/goalline)")
