@@ -163,8 +163,11 @@ DECLARED = (
     Study(RESULTS / "quick/kuhn-context200/kuhn", "Kuhn poker with contexts of 200 transitions", "kuhn", "quick",
           ("eval_context_length=200", CLUB_ANY, CONDITIONED),
           methods=("bati", "bati-r", "recon", "unicorn", "csro", "focal", "oracle", "no-context")),
-    Study(RESULTS / "quick/bati-run/report", "`bati run`'s default: BATI, BATI-R and Recon on PointGoal",
-          command="bati run --settings experts=conditioned --out-dir results/quick/bati-run"),
+    Study(RESULTS / "quick/bati-run/report", "`bati run`'s default: BATI, BATI-R and Recon on PointGoal (per-task "
+          "experts' data)", command="bati run --out-dir results/quick/bati-run"),
+    Study(RESULTS / "quick/bati-run-conditioned/report", "`bati run` on one task-conditioned expert's data (its "
+          "default before per-task experts)",
+          command="bati run --settings experts=conditioned --out-dir results/quick/bati-run-conditioned"),
     Study(RESULTS / "quick/pointgoal-convergence/report", "PointGoal at 3k and 12k steps: converged?",
           command="bati sweep --methods bati bati-r recon no-context --settings experts=conditioned steps=3000|12000 "
                   "--out-dir results/quick/pointgoal-convergence; bati report results/quick/pointgoal-convergence"),
