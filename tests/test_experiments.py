@@ -475,3 +475,22 @@ def test_bati_runs_closing_table_fits_80_columns_and_says_its_seeds_and_units():
     assert all(len(line) <= 80 for line in shown.splitlines())
     assert "| bati | 1 seed (0) | 0.47 | 0.63 | 0.65 |" in text
     assert "| recon | 3 seeds (0 1 2) | 0.51 ± 0.10 | -0.17 ± 0.20 | – |" in text
+
+
+def test_an_experiment_refuses_to_replace_the_report_of_other_settings(tmp_path):
+    """The committed conditioned tables sit where the default (per-task) run would write its report: refused, one
+    line before any work; the same settings (in any order) rewrite it."""
+    from bati.experiments.experiment import ExperimentJob, run_experiment_job
+    from bati.experiments.specs import ExperimentError
+
+    report = tmp_path / "main" / "report.md"
+    report.parent.mkdir()
+    report.write_text("# Experiment `main`\n\n- command: `bati experiment main --scale quick --settings "
+                      "experts=conditioned steps=12000 --out-dir X`\n")
+    job = dict(families=("PointGoal",), methods=("bati",), report_only=True, out_dir=tmp_path)
+    with pytest.raises(ExperimentError, match="with the settings experts=conditioned steps=12000 .* would replace it"):
+        run_experiment_job(ExperimentJob("main", **job), show_progress=False)
+    assert report.read_text().startswith("# Experiment `main`\n\n- command")  # untouched
+    run_experiment_job(ExperimentJob("main", settings=("steps=12000", "experts=conditioned"), **job),
+                       show_progress=False)
+    assert "experts=conditioned" in report.read_text()

@@ -8,6 +8,7 @@ report over every finished cell of the experiment, trained by this command or an
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Callable, Literal
@@ -17,6 +18,7 @@ from bati.config import ScaleName
 from bati.experiments.report import experiment_report
 from bati.experiments.specs import (
     SPECS,
+    ExperimentError,
     ExperimentResult,
     Plan,
     default_out_dir,
@@ -113,6 +115,7 @@ def run_experiment_job(job: ExperimentJob, show_progress: bool = True,
     out = job.out_dir or default_out_dir(job.scale)
     plan, whole = job_plans(job, out)
     command = job.command_line()  # what reruns exactly this command's cells
+    check_report_settings(out / spec.name, command)
     if job.report_only:  # reads finished cells only, so it needs no lock: a sweep may be running
         return ExperimentOutcome(experiment_report(whole, out / spec.name, command=command, selection=plan),
                                  out / spec.name)
@@ -121,6 +124,30 @@ def run_experiment_job(job: ExperimentJob, show_progress: bool = True,
                                 address=job.address, show_progress=show_progress, locked=True, on_probe=on_probe)
         report = experiment_report(whole, out / spec.name, command=command, selection=plan)
     return ExperimentOutcome(report, out / spec.name, result, {**result.sweep.errors, **result.probe_errors})
+
+
+def check_report_settings(report_dir: Path, command: str) -> None:
+    """ExperimentError (one line, before any work) where `report_dir` holds this experiment's report for other
+    settings (another `--settings`, e.g. the task-conditioned expert's data): this command's report would replace
+    that table."""
+    path = report_dir / "report.md"
+    try:
+        found = re.search(r"^- command: `(.*)`$", path.read_text(), re.M)
+    except (OSError, UnicodeDecodeError):
+        return  # no report yet
+    if found is not None and _settings_of(found.group(1)) != _settings_of(command):
+        old = " ".join(_settings_of(found.group(1))) or "none"
+        raise ExperimentError(f"{path} is the report of this experiment with the settings {old} (`{found.group(1)}`); "
+                              f"this command's ({' '.join(_settings_of(command)) or 'none'}) would replace it: give "
+                              "another --out-dir, or move that report first")
+
+
+def _settings_of(command: str) -> tuple[str, ...]:
+    """The KEY=VALUE settings of an experiment command line, sorted."""
+    words = command.split()
+    start = words.index("--settings") + 1 if "--settings" in words else len(words)
+    end = next((i for i in range(start, len(words)) if words[i].startswith("--")), len(words))
+    return tuple(sorted(words[start:end]))
 
 
 def experiment_list() -> list[dict]:
