@@ -9,6 +9,16 @@ EXPERT_KINDS: tuple[ExpertsKind, ...] = ("conditioned", "per-task")
 """One task-conditioned SAC per family (ours) or one SAC per training task (the paper's, App. C.2)."""
 
 
+EXPERT_LABELS = {"conditioned": "one task-conditioned expert", "per-task": "per-task experts"}
+"""The name of each kind's data in live tables, progress bars, report headings, figures and the claims page."""
+
+
+def check_kind(kind: str) -> str:
+    if kind not in EXPERT_KINDS:
+        raise ValueError(f"experts={kind!r}: choose one of {', '.join(EXPERT_KINDS)}")
+    return kind
+
+
 def family_experts(family, experts: ExpertsKind | None = None, seed: int = 0, tasks=None) -> ExpertsKind:
     """`experts`, or who collects `family`'s data (training tasks of `seed`, split `tasks`) unless told otherwise:
     the paper's way (App. C.2), one SAC per training task, where the family's record gives per-task experts a
@@ -21,16 +31,6 @@ def family_experts(family, experts: ExpertsKind | None = None, seed: int = 0, ta
     default_split = tasks is None or not tasks.label()
     has_them = family.record.per_task_expert_steps is not None and seed == 0 and default_split
     return "per-task" if has_them else "conditioned"
-
-EXPERT_LABELS = {"conditioned": "one task-conditioned expert", "per-task": "per-task experts"}
-"""The name of each kind's data in live tables, progress bars, report headings, figures and the claims page."""
-
-
-def check_kind(kind: str) -> str:
-    if kind not in EXPERT_KINDS:
-        raise ValueError(f"experts={kind!r}: choose one of {', '.join(EXPERT_KINDS)}")
-    return kind
-
 
 def experts_label(kind: str | None) -> str:
     """"per-task experts" / "one task-conditioned expert"; a record from before kinds existed: conditioned."""
