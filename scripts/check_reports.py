@@ -1,7 +1,7 @@
 """Do the committed experiment reports regenerate, at this checkout, from the committed runs?
 
     python scripts/check_reports.py                       # every results/**/report.md written by `bati experiment`
-    python scripts/check_reports.py results/cpu/experiments/main/report.md ...
+    python scripts/check_reports.py results/cpu/experiments/main-conditioned/report.md ...
 
 Each report names the command that wrote it (`- command: bati experiment NAME ... --out-dir OUT ...`). The
 check copies OUT's committed files into a scratch directory, reruns that command there with `--report-only`

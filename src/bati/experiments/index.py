@@ -113,11 +113,11 @@ BEFORE_PER_TASK_DEFAULT = {
     RESULTS / "quick/experiments": ("main", "noise", "context-length", "ood-tasks", "splits", "interpolated-contexts",
                                     "kuhn", "state-term", "unknown-tasks", "refined-inference", "self-collected"),
     TWELVE_K: ("main", "noise", "context-length", "ood-tasks", "splits", "interpolated-contexts", "noiseless-hopper"),
-    RESULTS / "cpu/experiments": ("main", "noise", "context-length", "ood-tasks"),
-    RESULTS / "paper/experiments": ("main", "kuhn"),
+    RESULTS / "cpu/experiments": ("noise", "context-length", "ood-tasks"),
+    RESULTS / "paper/experiments": ("kuhn",),
 }
 """The experiments of each store that ran before per-task experts became the default data: on the task-conditioned
-expert's."""
+expert's. Their `main` reports moved to main-conditioned (`DECLARED`), as its per-task cells share the directory."""
 _OLD_SETTINGS = {
     RESULTS / "quick/experiments/main": (CLUB_ANY, *ERTRL_FIRST),
     RESULTS / "quick/experiments/noise": (CLUB_ANY, *ERTRL_FIRST),
@@ -135,6 +135,9 @@ default before 2026-11-25; ER-TRL's first form: its FOCAL term at weight 1.0 and
 docs/methods.md)."""
 
 DECLARED = (
+    *(Study(RESULTS / f"{scale}/experiments/main-conditioned", SPECS["main"].title + " (one task-conditioned expert's "
+            "data: the default before per-task experts)", "main", scale, (CONDITIONED,), out_dir=STORES[scale],
+            store=True) for scale in ("cpu", "paper")),
     Study(RESULTS / "cpu/experts-40k/experts", "Table 4 on HalfCheetahDir with per-task experts of 40k transitions "
           "each (a third of the paper's Oracle; the experts since retrained; the conditioned cells are the experts "
           "study's)", "experts", "cpu", methods=("bati", "bati-r", "recon", "focal", "unicorn", "csro", "oracle"),
@@ -314,6 +317,15 @@ def read_notes(root: Path = Path(".")) -> dict[str, str]:
     return {k: v.strip() for k, v in notes.items()}
 
 
+def data_label(study: Study) -> str:
+    """Which experts collected a study's data, in words (an experiment whose families fall back to the
+    task-conditioned expert, docs/experiments.md, says so in its report)."""
+    parts = get_spec(study.experiment).parts if study.experiment else ()
+    if len({s for part in parts for s in part.settings if s.startswith("experts=")}) > 1:
+        return "both kinds of experts' data"
+    return "one task-conditioned expert's data" if CONDITIONED in study.settings else "per-task experts' data"
+
+
 def _size(study: Study) -> int:
     """Scales from the smallest: quick, quick with 4x its steps (12k), cpu, paper."""
     return {"quick": 0, "cpu": 2, "paper": 3}[study.scale] + (study.report.parent == TWELVE_K)
@@ -321,15 +333,15 @@ def _size(study: Study) -> int:
 
 def shown(summaries: list[Summary]) -> list[tuple[Summary, list[Summary]]]:
     """Per experiment (in the experiments' order): its study at the largest scale with at least ENOUGH of its cells
-    finished, and its studies at larger scales with fewer (scales' own directories and the 12k one)."""
+    finished, and its other studies at that scale or larger (scales' own directories and the 12k one)."""
     candidates = [s for s in summaries if s.study.experiment is not None and s.planned
                   and (s.study.store or s.study.report.parent == TWELVE_K)]
     out = []
     for name in SPECS:
         mine = sorted((s for s in candidates if s.study.experiment == name), key=lambda s: _size(s.study))
         enough = [s for s in mine if s.finished >= ENOUGH * s.planned]
-        if enough:
-            out.append((enough[-1], [s for s in mine if _size(s.study) > _size(enough[-1].study)]))
+        if enough:  # beside it: the larger scales' studies and the same scale's other settings
+            out.append((enough[-1], [s for s in mine if s is not enough[-1] and _size(s.study) >= _size(enough[-1].study)]))
     return out
 
 
@@ -345,11 +357,12 @@ def results_markdown(summaries: list[Summary], root: Path = Path(".")) -> str:
         report = root / s.study.report / "report.md"
         spec = SPECS[s.study.experiment]
         scale = "quick scale, 4x its steps" if s.study.report.parent == TWELVE_K else f"{s.study.scale} scale"
-        lines += [f"## {spec.name}: {spec.title} ({scale})", "",
+        lines += [f"## {spec.name}: {spec.title} ({scale}, {data_label(s.study)})", "",
                   f"`{s.study.command_line()}`: {s.finished} of {s.planned} cells, seeds "
                   f"{' '.join(map(str, s.seeds))}; [report](../{s.study.report}/report.md)."
-                  + "".join(f" At the {o.study.scale} scale{' (12k steps)' if _size(o.study) == 1 else ''} so far: "
-                            f"{o.finished} of {o.planned} cells, [report](../{o.study.report}/report.md)."
+                  + "".join(f" At the {o.study.scale} scale{' (12k steps)' if _size(o.study) == 1 else ''}"
+                            f"{'' if data_label(o.study) == data_label(s.study) else ' on ' + data_label(o.study)} "
+                            f"so far: {o.finished} of {o.planned} cells, [report](../{o.study.report}/report.md)."
                             for o in larger), ""]
         note = notes.get(str(s.study.report))
         if note:
@@ -365,9 +378,10 @@ def headline_markdown(root: Path = Path(".")) -> str:
     from bati.experiments.claims import SOURCES, gather
     from bati.report.stats import iqm_interval
 
+    mains = {(s.cells_dir, s.scale, s.settings): s for s in studies(root) if s.experiment == "main"}
     for source in reversed([s for s in SOURCES if not s.data and s.out_dir == STORES.get(s.scale)]):
-        study = Study(source.out_dir / "main", "", "main", source.scale, source.settings)
-        if not (root / study.report / "report.md").exists():
+        study = mains.get((source.out_dir, source.scale, source.settings))
+        if study is None:
             continue
         summary = summarise(study, root)
         if summary.planned and summary.finished >= ENOUGH * summary.planned:
