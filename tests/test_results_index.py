@@ -15,6 +15,7 @@ from bati.experiments.index import (
     read_notes,
     report_folders,
     studies,
+    unbacked_numbers,
     with_headline,
 )
 from bati.io import log_exists, pack_jsonl, read_jsonl
@@ -80,6 +81,22 @@ def test_notes_are_read_per_report_folder(tmp_path):
                                                "## results/quick/experiments/kuhn\nKuhn.\n")
     assert read_notes(tmp_path) == {"results/cpu/experiments/main": "It shows x.",
                                     "results/quick/experiments/kuhn": "Kuhn."}
+
+
+def test_every_number_of_the_notes_is_in_a_file_it_cites():
+    unbacked = {folder: numbers for folder, note in read_notes(ROOT).items()
+                if (numbers := unbacked_numbers(folder, note, ROOT))}
+    assert unbacked == {}, "results/notes.md: numbers no cited report or table holds"
+
+
+def test_a_note_number_is_backed_by_the_value_not_the_spelling(tmp_path):
+    (tmp_path / "results/a").mkdir(parents=True)
+    (tmp_path / "results/cpu/b").mkdir(parents=True)
+    (tmp_path / "results/a/report.md").write_text("| bati | 0.490 | 1,234.5 |\n")
+    (tmp_path / "results/cpu/b/table.csv").write_text("method,share\nbati,0.85\n")
+    note = "BATI 0.49 and 1234.5; its state term on 85% (`results/cpu/b`); FOCAL 0.48, 12%."
+    assert unbacked_numbers("results/a", note, tmp_path) == ["0.48", "12%"]
+    assert unbacked_numbers("results/a", "on 85%.", tmp_path) == ["85%"]  # cpu/b is not cited
 
 
 def test_study_command_names_what_plans_its_cells():

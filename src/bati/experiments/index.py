@@ -326,6 +326,32 @@ def data_label(study: Study) -> str:
     return "one task-conditioned expert's data" if CONDITIONED in study.settings else "per-task experts' data"
 
 
+_NUMBER = re.compile(r"(?<![\w.])[-+]?\d[\d,]*(?:\.\d+%?|%)(?!\d|\.\d)")
+_CITED = re.compile(r"`(?:results/)?((?:quick|cpu|paper|own-data)/[\w./-]+?)`")
+
+
+def _numbers(text: str) -> list[tuple[str, float]]:
+    """The decimals and percentages of a text as (as written, value): 85% is 0.85."""
+    found = []
+    for token in _NUMBER.findall(text):
+        value = float(token.replace(",", "").rstrip("%"))
+        found.append((token, value / 100 if token.endswith("%") else value))
+    return found
+
+
+def unbacked_numbers(folder: str, note: str, root: Path = Path(".")) -> list[str]:
+    """The numbers of a hand-written note that no file it cites holds: the note's report folder and every
+    results folder it names in backticks (their report.md and table.csv). Values compare, not spellings: 0.49
+    is the file's 0.490, and 85% its share 0.85."""
+    held = set()
+    for cited in [root / folder, *(root / RESULTS / path for path in _CITED.findall(note))]:
+        for name in ("report.md", "table.csv"):
+            if (cited / name).is_file():
+                held.update(round(value, 6) for _, value in _numbers((cited / name).read_text()))
+
+    return [token for token, value in _numbers(note) if round(value, 6) not in held]
+
+
 def _size(study: Study) -> int:
     """Scales from the smallest: quick, quick with 4x its steps (12k), cpu, paper."""
     return {"quick": 0, "cpu": 2, "paper": 3}[study.scale] + (study.report.parent == TWELVE_K)
