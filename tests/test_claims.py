@@ -10,11 +10,12 @@ import pytest
 
 from bati.cli import main
 from bati.experiments import claims as claims_module
-from bati.experiments.claims import CLAIMS, SOURCES, decide, overall
+from bati.experiments.claims import CLAIMS, CONDITIONED_DATA, SOURCES, claims_markdown, decide, overall
 from bati.experiments.probes import probe_path
 from bati.experiments.specs import get_spec, plan_experiment
 
-CPU = next(s for s in SOURCES if s.scale == "cpu")
+CPU = next(s for s in SOURCES if s.scale == "cpu" and not s.data)  # the paper's data: per-task experts
+CPU_CONDITIONED = next(s for s in SOURCES if s.scale == "cpu" and s.data == CONDITIONED_DATA)
 
 
 @pytest.fixture(autouse=True)
@@ -49,6 +50,18 @@ HIGH, LOW = (0.80, 0.85, 0.90), (0.20, 0.25, 0.30)
 def verdicts(root: Path) -> dict[str, tuple[str, str]]:
     findings = decide(root)
     return {claim.name: overall(findings, claim) for claim in CLAIMS}
+
+
+def test_the_paper_data_decide_and_the_conditioned_data_only_where_it_has_no_cells(tmp_path):
+    everywhere = {("bati", f): (HIGH, HIGH) for f in FAMILIES}
+    everywhere |= {(m, f): (HIGH, LOW) for f in FAMILIES for m in ("focal", "csro", "unicorn", "recon")}
+    write_cells(tmp_path, CPU_CONDITIONED, "main", everywhere)
+    assert verdicts(tmp_path)["C1"] == ("reproduced", "cpu, one task-conditioned expert's data")
+    write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, LOW), ("focal", "AntDir"): (HIGH, HIGH)})
+    findings = decide(tmp_path)
+    c1 = next(c for c in CLAIMS if c.name == "C1")
+    assert overall(findings, c1) == ("not reproduced", "cpu")  # one family of the paper's data decides
+    assert "cpu (AntDir: 1 of 5 families)" in claims_markdown(findings, "bati claims")
 
 
 def test_bati_above_every_baseline_everywhere_reproduces_c1_to_c3(tmp_path):
@@ -152,7 +165,7 @@ def test_bati_r_alone_tests_nothing(tmp_path):
 def test_every_tested_scale_stands_beside_the_largest(tmp_path):
     """A thin slice at a larger scale decides the headline verdict, and the smaller scale's verdict stays on
     the page beside it."""
-    paper = next(s for s in SOURCES if s.scale == "paper")
+    paper = next(s for s in SOURCES if s.scale == "paper" and not s.data)
     write_cells(tmp_path, CPU, "main", {("bati", f): (HIGH, HIGH) for f in FAMILIES}
                 | {("recon", f): (HIGH, LOW) for f in FAMILIES})
     write_cells(tmp_path, paper, "main", {("bati", "AntDir"): (HIGH, LOW), ("recon", "AntDir"): (HIGH, HIGH)})
@@ -310,17 +323,17 @@ def test_a_family_whose_runs_are_too_few_to_rank_is_named_apart(tmp_path):
 
 
 def test_the_summary_row_reads_convergence_at_the_verdicts_own_data(tmp_path):
-    """A per-task experts' source tested after the default one must not lend its convergence to the row."""
+    """The task-conditioned expert's source, tested beside the default one, must not lend its convergence to
+    the row."""
     c1 = next(c for c in CLAIMS if c.name == "C1")
-    per_task = next(s for s in SOURCES if "experts=per-task" in s.settings and s.scale == "cpu")
 
     def finding(source, moving):
         return claims_module.Finding(c1, source, [], "partly", 3, ["AntDir"], ["abc"], ["cpu"], 60.0, moving, 1)
 
-    findings = [finding(CPU, []), finding(per_task, [("bati on HalfCheetahDir falling", "-0.3")])]
+    findings = [finding(CPU, []), finding(CPU_CONDITIONED, [("bati on HalfCheetahDir falling", "-0.3")])]
     row = next(line for line in claims_module.claims_markdown(findings, "bati claims").splitlines()
                if line.startswith("| C1"))
-    assert "| cpu | yes (1 of 1 cell flat) |" in row  # the default data's cell, not the per-task one still falling
+    assert "| cpu (AntDir: 1 of 5 families) | yes (1 of 1 cell flat) |" in row  # the default data's cell
 
 
 def test_other_data_stands_beside_the_default_data_and_never_decides(tmp_path):
@@ -334,7 +347,7 @@ def test_other_data_stands_beside_the_default_data_and_never_decides(tmp_path):
     findings = decide(tmp_path)
     assert overall(findings, c1) == ("not tested", "-")
     assert claims_module.every_scale(findings, c1) == (
-        "cpu total size, per-task experts, 40k: not reproduced (HalfCheetahDir; 1 of 5 families)")
+        "cpu, total size, per-task experts, 40k: not reproduced (HalfCheetahDir; 1 of 5 families)")
     write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})
     assert overall(decide(tmp_path), c1) == ("partly", "cpu")
 

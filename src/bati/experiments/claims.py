@@ -5,7 +5,8 @@ one scale that returns the evidence (numbers with 95% stratified-bootstrap inter
 Every scale present under `results/` is read (`SOURCES`): the quick scale, 4x its steps, the cpu
 scale and the paper scale. A ranking is called only with at least `MIN_SEEDS` seeds per method; with
 fewer, the numbers are shown and the verdict is "not tested". The claim's verdict is the one at the
-largest scale that tests it. Scores are normalised returns, (return - random) / (experts - random),
+largest scale that tests it on the paper's data (per-task experts; `deciding`), or, where none does yet, on
+one task-conditioned expert's. Scores are normalised returns, (return - random) / (experts - random),
 where the runs record the references (the MuJoCo families and Kuhn poker), else raw returns.
 
 Verdicts: `reproduced` (every interval decides for the paper, on every family the claim names), `partly`
@@ -28,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bati.envs import FamilyUnavailable, get_family
 from bati.experiments.probes import read_probe
 from bati.experiments.specs import CONDITIONED, MUJOCO, get_spec, plan_experiment
 from bati.io import short_commit
@@ -52,26 +54,29 @@ class Source:
     scale: str
     settings: tuple[str, ...] = ()
     data: str = ""
-    """Short name of data other than the deciding data (our task-conditioned expert's, Table 3's size read per
-    task, the one setting whose cells cover every family): such a source's verdicts stand beside the deciding
-    data's (`every_scale`) and never decide a claim."""
+    """Short name of data other than the default (the paper's: per-task experts where the family has them,
+    docs/data.md): the task-conditioned expert's (`CONDITIONED_DATA`), which decides a claim only where the
+    default data has no cells for it, or another setting, whose verdicts only stand beside (`every_scale`)."""
 
+
+CONDITIONED_DATA = "one task-conditioned expert's data"
+"""`Source.data` of the task-conditioned expert's cells: they decide a claim only where no cells of the default
+data do (`overall`)."""
 
 SOURCES = (
     Source("quick (3k steps, 20 episodes per task, one task-conditioned expert's data)", Path("results/quick/experiments"),
-           "quick", (CONDITIONED,)),
+           "quick", (CONDITIONED,), data=CONDITIONED_DATA),
     Source("12k (4x quick steps, quick data: one task-conditioned expert's)", Path("results/quick/locomotion-12k"), "quick",
-           ("steps=12000", CONDITIONED)),
+           ("steps=12000", CONDITIONED), data=CONDITIONED_DATA),
     Source("cpu (one task-conditioned expert's data at the paper's sizes, 100k steps, batch 16 x 64, IQL 128x128)",
-           Path("results/cpu/experiments"), "cpu", (CONDITIONED,)),
+           Path("results/cpu/experiments"), "cpu", (CONDITIONED,), data=CONDITIONED_DATA),
     Source("paper (one task-conditioned expert's data at the paper's sizes, 100k steps, batch 16 x 256, IQL 256x256)",
-           Path("results/paper/experiments"), "paper", (CONDITIONED,)),
-    # the same scales on data collected by one SAC expert per training task (App. C.2's way; the rows above: our
-    # task-conditioned expert's data), then Table 3's dataset size read in total (50 episodes per training task)
-    Source("cpu, per-task experts' data (one SAC per training task, App. C.2)", Path("results/cpu/experiments"), "cpu",
-           ("experts=per-task",), data="per-task experts"),
-    Source("paper, per-task experts' data (one SAC per training task, App. C.2)", Path("results/paper/experiments"),
-           "paper", ("experts=per-task",), data="per-task experts"),
+           Path("results/paper/experiments"), "paper", (CONDITIONED,), data=CONDITIONED_DATA),
+    # the default data, the paper's (App. C.2): one SAC expert per training task where the family has them
+    Source("cpu (the paper's data: one SAC expert per training task, App. C.2; 100k steps, batch 16 x 64, IQL 128x128)",
+           Path("results/cpu/experiments"), "cpu"),
+    Source("paper (the paper's data: one SAC expert per training task, App. C.2; 100k steps, batch 16 x 256, "
+           "IQL 256x256)", Path("results/paper/experiments"), "paper"),
     # HalfCheetahDir's per-task cells on its first experts (40k transitions each, a third of the paper's Oracle)
     Source("cpu, per-task experts of 40k transitions (HalfCheetahDir's first experts, since retrained)",
            Path("results/cpu/experts-40k"), "cpu", ("experts=per-task",), data="per-task experts, 40k"),
@@ -475,11 +480,14 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
     require_rliable()
     findings = []
     for claim in CLAIMS:
-        for source in sources:
+        seen = set()
+        for source in sorted(sources, key=lambda s: bool(s.data)):  # the default data's first: a cell is theirs
             records = gather(claim.experiment, source, Path(root))
             records = [r for r in records if r.family in claim.families]
-            if not records:
+            cells = frozenset((r.job, r.seed, r.context_length) for r in records)
+            if not records or cells in seen:  # (Kuhn poker's and the ood splits' default data: conditioned)
                 continue
+            seen.add(cells)
             lines, verdict, tally = claim.test(records, claim.families)
             compared = compared_families(records, claim)
             ranked = compared_families(records, claim, seeds=MIN_SEEDS)
@@ -537,15 +545,39 @@ def _tested(findings: list[Finding], claim: Claim) -> list[Finding]:
                   key=lambda f: SOURCES.index(f.source) if f.source in SOURCES else -1)
 
 
+def on_paper_data(source: Source, claim: Claim) -> bool:
+    """Whether a source's cells are, for the claim's families, the data the paper collects: the default data,
+    or the task-conditioned expert's where none of the families has per-task experts (Kuhn poker's exact best
+    responses are its experts either way)."""
+    if not source.data:
+        return True
+    return source.data == CONDITIONED_DATA and not any(_has_per_task_experts(f) for f in claim.families)
+
+
+def _has_per_task_experts(name: str) -> bool:
+    try:
+        return get_family(name).record.per_task_expert_steps is not None
+    except FamilyUnavailable:  # (KuhnPoker without OpenSpiel: it has none)
+        return False
+
+
 def _scale_name(finding: Finding) -> str:
-    return finding.source.label.split(" ")[0].rstrip(",") + (f" {finding.source.data}" if finding.source.data else "")
+    scale = finding.source.label.split(" ")[0].rstrip(",")
+    return scale if on_paper_data(finding.source, finding.claim) else f"{scale}, {finding.source.data}"
+
+
+def deciding(findings: list[Finding], claim: Claim) -> list[Finding]:
+    """The claim's findings that decide it, smallest scale first: those on the paper's data (`on_paper_data`),
+    else, where none tests it, the task-conditioned expert's (named as such wherever the verdict is shown)."""
+    tested = _tested(findings, claim)
+    return ([f for f in tested if on_paper_data(f.source, claim)]
+            or [f for f in tested if f.source.data == CONDITIONED_DATA])
 
 
 def overall(findings: list[Finding], claim: Claim) -> tuple[str, str]:
-    """The verdict at the largest scale that tests the claim on the deciding data (the sources without `data`:
-    our task-conditioned expert's, whose cells cover every family), and that scale's label; other data have
-    their verdicts beside it (`every_scale`)."""
-    tested = [f for f in _tested(findings, claim) if not f.source.data]
+    """The verdict at the largest scale that decides the claim (`deciding`) and that scale's label; the other
+    scales and data have their verdicts beside it (`every_scale`)."""
+    tested = deciding(findings, claim)
     return (tested[-1].verdict, _scale_name(tested[-1])) if tested else ("not tested", "-")
 
 
@@ -599,7 +631,9 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
              "record random and expert returns (C6: raw returns, the claim is about their sign). Intervals: "
              f"95% stratified-bootstrap percentile intervals through rliable ({REPS:,} replicates, seed 0). A "
              f"ranking is called only with >= {MIN_SEEDS} seeds per method; P(X > Y) decides when its interval "
-             "excludes 1/2. The verdict of a claim is the one at the largest scale that tests it. Converged: "
+             "excludes 1/2. The verdict of a claim is the one at the largest scale that tests it on the paper's data "
+             "(one SAC expert per training task; Kuhn poker: its exact best responses), and where no cells of "
+             "those test it yet, on one task-conditioned expert's data (named so). Converged: "
              "the p_test drift over the scored window (the change across the evaluations a run's number averages, "
              "of the least-squares line through them; mean over seeds with its 95% interval) of every compared "
              f"cell with >= {MIN_SEEDS} seeds holds 0 (or is under {NEGLIGIBLE}); a cell whose interval excludes 0 "
@@ -609,9 +643,11 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
              "| --- | --- | --- | --- | --- | --- |"]
     for claim in CLAIMS:
         verdict, scale = overall(findings, claim)
-        tested = [f for f in _tested(findings, claim) if not f.source.data]  # the verdict's own scale
+        tested = deciding(findings, claim)  # the verdict's own scale
         counts = tested[-1].tally.counts() if tested and verdict == "partly" else ""
         verdict = f"{verdict} ({counts})" if counts else verdict
+        if tested and 1 < len(claim.families) and len(tested[-1].families) < len(claim.families):
+            scale += f" ({', '.join(tested[-1].families)}: {len(tested[-1].families)} of {len(claim.families)} families)"
         lines.append(f"| {claim.name}: {claim.text} | {claim.source} | **{verdict}** | {scale} | "
                      f"{converged_text(tested[-1], short=True) if tested else '-'} | {every_scale(findings, claim)} |")
     for claim in CLAIMS:

@@ -317,7 +317,7 @@ def read_notes(root: Path = Path(".")) -> dict[str, str]:
     return {k: v.strip() for k, v in notes.items()}
 
 
-def data_label(study: Study) -> str:
+def study_data(study: Study) -> str:
     """Which experts collected a study's data, in words (an experiment whose families fall back to the
     task-conditioned expert, docs/experiments.md, says so in its report)."""
     parts = get_spec(study.experiment).parts if study.experiment else ()
@@ -383,11 +383,11 @@ def results_markdown(summaries: list[Summary], root: Path = Path(".")) -> str:
         report = root / s.study.report / "report.md"
         spec = SPECS[s.study.experiment]
         scale = "quick scale, 4x its steps" if s.study.report.parent == TWELVE_K else f"{s.study.scale} scale"
-        lines += [f"## {spec.name}: {spec.title} ({scale}, {data_label(s.study)})", "",
+        lines += [f"## {spec.name}: {spec.title} ({scale}, {study_data(s.study)})", "",
                   f"`{s.study.command_line()}`: {s.finished} of {s.planned} cells, seeds "
                   f"{' '.join(map(str, s.seeds))}; [report](../{s.study.report}/report.md)."
                   + "".join(f" At the {o.study.scale} scale{' (12k steps)' if _size(o.study) == 1 else ''}"
-                            f"{'' if data_label(o.study) == data_label(s.study) else ' on ' + data_label(o.study)} "
+                            f"{'' if study_data(o.study) == study_data(s.study) else ' on ' + study_data(o.study)} "
                             f"so far: {o.finished} of {o.planned} cells, [report](../{o.study.report}/report.md)."
                             for o in larger), ""]
         note = notes.get(str(s.study.report))
@@ -399,28 +399,38 @@ def results_markdown(summaries: list[Summary], root: Path = Path(".")) -> str:
 
 # --- the README's headline -------------------------------------------------------------------------
 def headline_markdown(root: Path = Path(".")) -> str:
-    """The IQM of the normalised p_test score per method and family of `main` at the largest scale where at
-    least ENOUGH of its cells are finished."""
-    from bati.experiments.claims import SOURCES, gather
-    from bati.report.stats import iqm_interval
+    """The IQM of the normalised p_test score per method and family of `main`: on the paper's data (per-task
+    experts), then on one task-conditioned expert's; each at the largest scale where at least ENOUGH of its cells
+    are finished, else the largest with any (its missing families named)."""
+    from bati.experiments.claims import CONDITIONED_DATA, SOURCES
 
     mains = {(s.cells_dir, s.scale, s.settings): s for s in studies(root) if s.experiment == "main"}
-    for source in reversed([s for s in SOURCES if not s.data and s.out_dir == STORES.get(s.scale)]):
-        study = mains.get((source.out_dir, source.scale, source.settings))
-        if study is None:
-            continue
-        summary = summarise(study, root)
-        if summary.planned and summary.finished >= ENOUGH * summary.planned:
-            break
-    else:
-        return "No scale has the main experiment's cells finished yet.\n"
+    tables = []
+    for data, title in (("", "The paper's data (one SAC expert per training task, App. C.2)"),
+                        (CONDITIONED_DATA, "One task-conditioned expert's data")):
+        found = []
+        for source in reversed([s for s in SOURCES if s.data == data and s.out_dir == STORES.get(s.scale)]):
+            study = mains.get((source.out_dir, source.scale, source.settings))
+            summary = summarise(study, root) if study is not None else None
+            if summary is not None and summary.finished:
+                found.append((source, study, summary))
+        enough = [f for f in found if f[2].finished >= ENOUGH * f[2].planned]
+        if found:
+            tables.append(_headline_table(*(enough or found)[0], title, root))
+    return "\n".join(tables) if tables else "No scale has the main experiment's cells finished yet.\n"
+
+
+def _headline_table(source, study: Study, summary: Summary, title: str, root: Path) -> str:
+    from bati.experiments.claims import gather
+    from bati.report.stats import iqm_interval
+
     records = [r for r in gather("main", source, root) if r.seed in summary.seeds]
     families = sorted({r.family for r in records})
-    lines = [f"p_test score (normalised: 0 = random policy, 1 = the experts), IQM [95% CI] over seeds "
+    missing = [f for f in dict.fromkeys(c.config.family for c in study.plan(root).cells) if f not in families]
+    lines = [f"**{title}**: p_test score (normalised: 0 = random policy, 1 = the experts), IQM [95% CI] over seeds "
              f"{' '.join(map(str, summary.seeds))}, {source.scale} scale ({summary.finished} of {summary.planned} "
-             f"cells; [report]({study.report}/report.md), the paper's claims decided: [docs/claims.md]"
-             "(docs/claims.md)).", "",
-             "| method | " + " | ".join(families) + " |", "|---|" + "---|" * len(families)]
+             f"cells{'; not run yet: ' + ', '.join(missing) if missing else ''}; [report]({study.report}/report.md)).",
+             "", "| method | " + " | ".join(families) + " |", "|---|" + "---|" * len(families)]
     for method in MAIN_METHODS:
         cells = []
         for family in families:

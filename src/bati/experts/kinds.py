@@ -32,6 +32,7 @@ def family_experts(family, experts: ExpertsKind | None = None, seed: int = 0, ta
     has_them = family.record.per_task_expert_steps is not None and seed == 0 and default_split
     return "per-task" if has_them else "conditioned"
 
+
 def experts_label(kind: str | None) -> str:
     """"per-task experts" / "one task-conditioned expert"; a record from before kinds existed: conditioned."""
     return EXPERT_LABELS.get(kind or "conditioned", str(kind))
