@@ -117,6 +117,7 @@ def run_and_show_main_job(job: MainJob, *, console) -> None:
                   f"(results.md, results.json; the report with CSVs and curves in {results['report_dir']}/)",
                   soft_wrap=True)
 
+
 def compact_table(rows: list[dict]) -> str:
     """The few columns a reader needs, for an 80-column terminal (the full table: results.md and the report):
     normalised p_train and p_test scores, and the p_test task-inference error (a task distance, App. C.2)."""
