@@ -32,6 +32,7 @@ import numpy as np
 from bati.envs import FamilyUnavailable, get_family
 from bati.experiments.probes import read_probe
 from bati.experiments.specs import CONDITIONED, MUJOCO, get_spec, plan_experiment
+from bati.experts.kinds import data_label
 from bati.io import short_commit
 from bati.report.convergence import NEGLIGIBLE, drift_interval, drift_verdict, run_drift
 from bati.report.runs import RunResult, jobs_wall_time
@@ -59,7 +60,7 @@ class Source:
     default data has no cells for it, or another setting, whose verdicts only stand beside (`every_scale`)."""
 
 
-CONDITIONED_DATA = "one task-conditioned expert's data"
+CONDITIONED_DATA = data_label("conditioned")  # "one task-conditioned expert's data"
 """`Source.data` of the task-conditioned expert's cells: they decide a claim only where no cells of the default
 data do (`overall`)."""
 

@@ -33,6 +33,7 @@ from bati.errors import PathError
 from bati.experiments.experiment import job_plans
 from bati.experiments.report import cell_records, experiment_report
 from bati.experiments.specs import CONDITIONED, MAIN_METHODS, SCALES, SPECS, Plan, get_spec, plan_experiment
+from bati.experts.kinds import data_label
 from bati.io import atomic_write_text, pack_jsonl, short_commit
 from bati.report.runs import ReportWarning, RunResult, find_eval_files, jobs_wall_time
 
@@ -323,7 +324,7 @@ def study_data(study: Study) -> str:
     parts = get_spec(study.experiment).parts if study.experiment else ()
     if len({s for part in parts for s in part.settings if s.startswith("experts=")}) > 1:
         return "both kinds of experts' data"
-    return "one task-conditioned expert's data" if CONDITIONED in study.settings else "per-task experts' data"
+    return data_label("conditioned" if CONDITIONED in study.settings else "per-task")
 
 
 _NUMBER = re.compile(r"(?<![\w.])[-+]?\d[\d,]*(?:\.\d+%?|%)(?!\d|\.\d)")
@@ -348,7 +349,6 @@ def unbacked_numbers(folder: str, note: str, root: Path = Path(".")) -> list[str
         for name in ("report.md", "table.csv"):
             if (cited / name).is_file():
                 held.update(round(value, 6) for _, value in _numbers((cited / name).read_text()))
-
     return [token for token, value in _numbers(note) if round(value, 6) not in held]
 
 
