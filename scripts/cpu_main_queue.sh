@@ -106,7 +106,8 @@ finished_now() {  # $1 experiment, $2 family, $3 seed, $4 method: true when its 
   python - "$out_dir" "$data_root" "$@" << 'EOF'
 import sys
 from pathlib import Path
-from bati.experiments.specs import get_spec, plan_experiment
+from bati.experiments.pipeline import plan_experiment
+from bati.experiments.specs import get_spec
 out_dir, data_root, experiment, family, seed, method = sys.argv[1:]
 plan = plan_experiment(get_spec(experiment), "cpu", Path(out_dir), seeds=(int(seed),), methods=(method,),
                        families=(family,), data_root=Path(data_root))
@@ -127,7 +128,8 @@ phase2=${PHASE2:-"er-trl bati-auto dpt"}
 plans=$(python - "$out_dir" "$data_root" << 'EOF'
 import sys
 from pathlib import Path
-from bati.experiments.specs import get_spec, plan_experiment
+from bati.experiments.pipeline import plan_experiment
+from bati.experiments.specs import get_spec
 from bati.methods import METHODS, training_of
 out_dir, data_root = Path(sys.argv[1]), Path(sys.argv[2])
 runs = {p.parent.resolve() for p in out_dir.glob("*/*/*-seed*/checkpoint.msgpack") if not (p.parent / "eval.json").exists()}

@@ -11,8 +11,9 @@ import pytest
 from bati.cli import main
 from bati.experiments import claims as claims_module
 from bati.experiments.claims import CLAIMS, CONDITIONED_DATA, SOURCES, claims_markdown, decide, overall
-from bati.experiments.probes import probe_path
-from bati.experiments.specs import get_spec, plan_experiment
+from bati.experiments.pipeline import plan_experiment
+from bati.experiments.specs import get_spec
+from bati.report.probes import probe_path
 
 CPU = next(s for s in SOURCES if s.scale == "cpu" and not s.data)  # the paper's data: per-task experts
 CPU_CONDITIONED = next(s for s in SOURCES if s.scale == "cpu" and s.data == CONDITIONED_DATA)
@@ -26,14 +27,25 @@ def fewer_replicates(monkeypatch):
 QUICK = SOURCES[0]
 
 
-def write_cells(root: Path, source, experiment: str, scores: dict, seeds=(0, 1, 2)) -> None:
-    """An eval.json in each planned cell of `experiment`: scores[(method, family)] = (p_train, p_test) per
-    seed (random 0 and experts 1, so the normalised score is the return)."""
-    plan = plan_experiment(get_spec(experiment), source.scale, root / source.out_dir, seeds=seeds,
+def store_plan(root: Path, source, experiment: str):
+    """The experiment planned in the source's folder for seeds 0-4 and stored as its report stores it (plan.json
+    in a report folder of its own): what `bati claims` reads."""
+    name = dict(source.reports).get(experiment, experiment)
+    plan = plan_experiment(get_spec(name), source.scale, root / source.out_dir, seeds=(0, 1, 2, 3, 4),
                            settings=source.settings)
-    for cell in plan.cells:
+    folder = root / source.out_dir / "-".join([name, *sorted(s.replace("=", "_") for s in source.settings)])
+    folder.mkdir(parents=True, exist_ok=True)
+    plan.stored().write(folder)
+    return plan
+
+
+def write_cells(root: Path, source, experiment: str, scores: dict, seeds=(0, 1, 2)) -> None:
+    """An eval.json in each planned cell of `experiment` (of the source's experts kind) for `seeds`:
+    scores[(method, family)] = (p_train, p_test) per seed (random 0 and experts 1, so the normalised score is the
+    return)."""
+    for cell in store_plan(root, source, experiment).cells:
         c = cell.config
-        if (c.method, c.family) not in scores:
+        if (c.method, c.family) not in scores or c.seed not in seeds or source.experts not in ("", c.experts):
             continue
         p_train, p_test = scores[(c.method, c.family)]
         c.out_dir.mkdir(parents=True, exist_ok=True)
@@ -199,8 +211,7 @@ def test_a_compared_cell_still_rising_over_its_scored_window_is_named_beside_the
     """FOCAL's p_test climbs through its last five evaluations on AntDir (+0.4 normalised): the page says the
     verdict rests on a cell that has not converged; BATI's flat curves count as converged."""
     write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})
-    plan = plan_experiment(get_spec("main"), "cpu", tmp_path / CPU.out_dir, seeds=(0, 1, 2), settings=CPU.settings)
-    for cell in plan.cells:
+    for cell in store_plan(tmp_path, CPU, "main").cells:
         path = cell.config.out_dir / "eval.json"
         if not path.exists():
             continue
@@ -277,11 +288,10 @@ def test_the_noise_claim_shows_bati_r_beside_bati_without_counting_it(tmp_path):
 
 def test_bati_alone_decides_whether_longer_contexts_help(tmp_path):
     """C5 is about BATI's own gain with the context's length: its runs count without a baseline beside them."""
-    plan = plan_experiment(get_spec("context-length"), CPU.scale, tmp_path / CPU.out_dir, seeds=(0, 1, 2),
-                           settings=CPU.settings)
+    plan = store_plan(tmp_path, CPU, "context-length")
     for cell in plan.cells:
         c = cell.config
-        if c.method != "bati":
+        if c.method != "bati" or c.seed > 2:
             continue
         c.out_dir.mkdir(parents=True, exist_ok=True)
         record = {"family": c.family, "method": c.method, "seed": c.seed, "p_train_return": 0.5,
@@ -339,7 +349,7 @@ def test_the_summary_row_reads_convergence_at_the_verdicts_own_data(tmp_path):
 def test_other_data_stands_beside_the_default_data_and_never_decides(tmp_path):
     """Table 3's size read in total (its own results directory) is judged on its own line; the headline verdict
     stays the default data's, even where only the other data test the claim."""
-    total = next(s for s in SOURCES if "episodes_per_task=50" in s.settings and "experts=per-task" in s.settings)
+    total = next(s for s in SOURCES if "episodes_per_task=50" in s.settings and s.experts == "per-task")
     assert total.out_dir != CPU.out_dir and total.data
     write_cells(tmp_path, total, "main", {("bati", "HalfCheetahDir"): (HIGH, LOW),
                                           ("focal", "HalfCheetahDir"): (HIGH, HIGH)})

@@ -132,7 +132,7 @@ def test_sigterm_is_a_one_line_error_with_exit_code_143(capsys, monkeypatch):
     import signal
     import time
 
-    from bati.cli import Envs
+    from bati.cli_commands import Envs
 
     def terminated(self):
         os.kill(os.getpid(), signal.SIGTERM)

@@ -16,19 +16,18 @@ import pytest
 from bati.cli import main
 from bati.envs import TaskError, TaskSplit, get_family
 from bati.evaluate import Evaluator, mixed_context_lengths
-from bati.experiments.probes import Probe, ProbeError, read_probe
+from bati.experiments.pipeline import plan_experiment, run_experiment
+from bati.experiments.report import experiment_report
 from bati.experiments.specs import (
     ABLATION_METHODS,
     MAIN_METHODS,
-    NOISE_METHODS,
     MUJOCO,
+    NOISE_METHODS,
     SPECS,
     ExperimentError,
     get_spec,
-    plan_experiment,
-    run_experiment,
 )
-from bati.experiments.report import experiment_report
+from bati.report.probes import Probe, ProbeError, read_probe
 
 OUT = Path("/nonexistent-out")  # planning writes nothing: any path will do
 
@@ -309,7 +308,7 @@ def test_a_bati_runs_likelihood_split_is_saved_before_the_next_job_starts(tmp_pa
     is written as each job ends, not after the whole sweep (at the paper scale no BATI run had one: every machine
     went away first).
     No training here: the jobs write their eval.json, the split records its call."""
-    from bati.experiments import specs as specs_module
+    from bati.experiments import pipeline as pipeline_module
     from bati.experiments import sweep as sweep_module
 
     events = []
@@ -329,9 +328,9 @@ def test_a_bati_runs_likelihood_split_is_saved_before_the_next_job_starts(tmp_pa
     monkeypatch.setattr(sweep_module, "run_job", fake_job)
     monkeypatch.setattr(sweep_module, "prepare_data", lambda cells, progress, check_only=False: None)
     monkeypatch.setattr(sweep_module, "check_experts", lambda cells: None)
-    monkeypatch.setattr(specs_module, "likelihood_split_due",  # due until saved, as the real one (a file)
+    monkeypatch.setattr(pipeline_module, "likelihood_split_due",  # due until saved, as the real one (a file)
                         lambda run, step, length: f"split {Path(run).name}" not in events)
-    monkeypatch.setattr(specs_module, "save_likelihood_split",
+    monkeypatch.setattr(pipeline_module, "save_likelihood_split",
                         lambda run, length: events.append(f"split {Path(run).name}"))
     result = run_experiment(plan, tmp_path, show_progress=False)
     assert result.sweep.count("done") == 3 and not result.probe_errors
@@ -421,7 +420,7 @@ def test_tiny_experiment_end_to_end(tmp_path, name):
 def test_a_probe_saved_before_a_new_probe_setting_is_read_back(tmp_path):
     from dataclasses import asdict
 
-    from bati.experiments.probes import probe_path
+    from bati.report.probes import probe_path
 
     probe = Probe(eval_context_length=50)
     old = {k: v for k, v in asdict(probe).items() if k != "novelty"}  # saved before `novelty` existed

@@ -7,6 +7,7 @@ import json
 import os
 import textwrap
 
+import example_family
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -17,7 +18,6 @@ from bati.envs import TaskError, family_names, get_family, register_family
 from bati.methods import METHODS
 from bati.rl.iql import IQLConfig
 from bati.train import train
-import example_family
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +98,8 @@ def test_every_method_runs_collect_train_evaluate_on_a_family_defined_outside_sr
 
 
 def test_the_transferable_experiments_plan_a_registered_family(line_goal, tmp_path):
-    from bati.experiments.specs import ExperimentError, get_spec, plan_experiment
+    from bati.experiments.pipeline import plan_experiment
+    from bati.experiments.specs import ExperimentError, get_spec
 
     def plan(name):
         return plan_experiment(get_spec(name), "quick", tmp_path, families=("LineGoal",))
@@ -170,7 +171,7 @@ def test_a_registered_method_gets_its_section_of_train_config():
     check = textwrap.dedent("""
         import contextlib, io, json
         import tyro
-        from bati.cli import Train
+        from bati.cli_commands import Train
         from bati.config import TrainConfig, apply_settings, method_sections
 
         assert method_sections()["mine"] is MineConfig and TrainConfig().mine == MineConfig()
@@ -193,7 +194,8 @@ def test_a_registered_method_gets_its_section_of_train_config():
 
 
 def test_main_and_noise_plan_pointgoal_the_default_family_of_bati_run(tmp_path):
-    from bati.experiments.specs import get_spec, plan_experiment
+    from bati.experiments.pipeline import plan_experiment
+    from bati.experiments.specs import get_spec
 
     for name in ("main", "noise"):
         cells = plan_experiment(get_spec(name), "quick", tmp_path, families=("PointGoal",)).cells

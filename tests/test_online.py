@@ -13,8 +13,8 @@ import pytest
 from bati.envs import get_family
 from bati.envs.rollout import rollout
 from bati.evaluate import Evaluator
-from bati.experiments.probes import Probe, ProbeError
 from bati.online import OnlineError, SelfCollector, reinference_steps, window_indices
+from bati.report.probes import Probe, ProbeError
 
 STEP = 0.1  # PointGoal's position change per step at full action
 LENGTH = 40  # episode length of these tests (the env's limit is 200)

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from bati.experiments.specs import get_spec, plan_experiment
+from bati.experiments.pipeline import plan_experiment
+from bati.experiments.specs import get_spec
 
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "cpu_main_queue.sh"
 STUB = """#!/bin/sh

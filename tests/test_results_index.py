@@ -99,6 +99,12 @@ def test_a_note_number_is_backed_by_the_value_not_the_spelling(tmp_path):
     assert unbacked_numbers("results/a", "on 85%.", tmp_path) == ["85%"]  # cpu/b is not cited
 
 
+def test_every_experiment_study_has_its_stored_plan():
+    """`bati claims` and `bati results` read the plans the reports stored: a report without one is stale."""
+    missing = [s.report for s in studies(ROOT) if s.experiment is not None and s.plan(ROOT) is None]
+    assert missing == [], "write the reports again: `bati results --reports`"
+
+
 def test_study_command_names_what_plans_its_cells():
     study = Study(Path("results/quick/x/main"), "q", "main", "quick", ("steps=12000",), seeds=(0,),
                   families=("HopperParam",))
@@ -132,19 +138,14 @@ def _kuhn_study_tree(root: Path) -> Study:
     return next(s for s in studies(root) if s.experiment == "kuhn")
 
 
-def test_the_index_reads_a_study_whose_family_is_not_installed_and_names_a_damaged_cell(tmp_path, monkeypatch):
-    """Without OpenSpiel a KuhnPoker study cannot be planned: its cells are counted from its files (the index
-    failed with "KuhnPoker needs OpenSpiel"), and a damaged eval.json is named, not dropped without a word."""
-    from bati.envs import FamilyUnavailable
+def test_the_index_reads_a_study_without_a_stored_plan_and_names_a_damaged_cell(tmp_path):
+    """A report written before reports stored their plan (no plan.json): its cells are counted from its files,
+    and a damaged eval.json is named, not dropped without a word."""
     from bati.experiments.index import summarise
     from bati.report.runs import ReportWarning
 
     study = _kuhn_study_tree(tmp_path)
-
-    def unavailable(self, root):
-        raise FamilyUnavailable("KuhnPoker needs OpenSpiel, which is not installed")
-
-    monkeypatch.setattr(Study, "plan", unavailable)
+    assert study.plan(tmp_path) is None
     with pytest.warns(ReportWarning, match=r"bati-seed2/eval.json"):
         summary = summarise(study, tmp_path)
     assert (summary.finished, summary.seeds) == (2, (0, 1))

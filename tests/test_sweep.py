@@ -12,7 +12,7 @@ import bati.train as train_module
 from bati.cli import main
 from bati.data import Collection
 from bati.experiments import sweep as sweep_module
-from bati.experiments.sweep import Grid, SweepError, expand, make_jobs, sweep
+from bati.experiments.sweep import Grid, SweepError, expand, make_jobs, sweep_grid
 
 TINY = ("steps=10", "eval_every=5", "log_every=5", "task_batch=4", "batch_size=8", "context_length=20",
         "iql.hidden_dims=[32,32]")
@@ -81,20 +81,20 @@ def test_a_cell_identity_is_its_whole_config(tmp_path):
 ])
 def test_bad_grids_are_refused_before_anything_is_written(tmp_path, grid, message):
     with pytest.raises(SweepError, match=message):
-        sweep(grid, tmp_path / "sweep", show_progress=False)
+        sweep_grid(grid, tmp_path / "sweep", show_progress=False)
     assert not (tmp_path / "sweep").exists()
 
 
 def test_bad_workers_backend_and_directories(tmp_path):
     with pytest.raises(SweepError, match="workers must be"):
-        sweep(Grid(), tmp_path / "s", workers=0, show_progress=False)
+        sweep_grid(Grid(), tmp_path / "s", workers=0, show_progress=False)
     with pytest.raises(SweepError, match="unknown backend"):
-        sweep(Grid(), tmp_path / "s", backend="slurm", show_progress=False)
+        sweep_grid(Grid(), tmp_path / "s", backend="slurm", show_progress=False)
     (tmp_path / "file").write_text("keep me")
     with pytest.raises(SweepError, match="is a file"):
-        sweep(Grid(), tmp_path / "file", show_progress=False)
+        sweep_grid(Grid(), tmp_path / "file", show_progress=False)
     with pytest.raises(SweepError, match="is a file"):
-        sweep(Grid(), tmp_path / "file" / "sub", show_progress=False)
+        sweep_grid(Grid(), tmp_path / "file" / "sub", show_progress=False)
     assert (tmp_path / "file").read_text() == "keep me"
     assert not (tmp_path / "s").exists()
 
@@ -137,7 +137,7 @@ def _statuses(out):
 def test_a_sweep_runs_every_cell_then_skips_finished_ones(tmp_path, local, monkeypatch):
     grid = Grid(methods=("bati", "no-context"), seeds=(0, 1), settings=TINY)
     out = tmp_path / "sweep"
-    result = sweep(grid, out, show_progress=False)
+    result = sweep_grid(grid, out, show_progress=False)
     assert result.count("done") == 4 and _statuses(out) == ["done"] * 4
     for cell in expand(grid, out):
         summary = json.loads((cell.config.out_dir / "eval.json").read_text())
@@ -147,7 +147,7 @@ def test_a_sweep_runs_every_cell_then_skips_finished_ones(tmp_path, local, monke
         raise AssertionError("a finished cell was trained again")
 
     monkeypatch.setattr(sweep_module, "run_job", no_training)
-    again = sweep(grid, out, show_progress=False)
+    again = sweep_grid(grid, out, show_progress=False)
     assert again.count("skipped") == 4 and _statuses(out) == ["skipped"] * 4
 
 
@@ -163,7 +163,7 @@ def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(
         return real(config, seeds, runs_dir, references, also)
 
     monkeypatch.setattr(sweep_module, "run_job", flaky)
-    result = sweep(grid, out, show_progress=False)
+    result = sweep_grid(grid, out, show_progress=False)
     assert result.count("done") == 1 and result.count("failed") == 1
     cells = json.loads((out / "sweep.json").read_text())["cells"]
     failed = [c for c in cells.values() if c["status"] == "failed"]
@@ -178,7 +178,7 @@ def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(
     ran = []
     monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None, also=():
                         ran.append(config.method) or real(config, seeds, runs_dir, references, also))
-    rerun = sweep(grid, out, show_progress=False)
+    rerun = sweep_grid(grid, out, show_progress=False)
     assert ran == ["recon"] and rerun.count("done") == 1 and rerun.count("skipped") == 1
 
 
@@ -188,18 +188,18 @@ def test_cells_evaluated_alongside_are_done_without_training_again(tmp_path, loc
     real, ran = sweep_module.run_job, []
     monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None, also=():
                         ran.append((config.method, also)) or real(config, seeds, runs_dir, references, also))
-    result = sweep(grid, out, show_progress=False)
+    result = sweep_grid(grid, out, show_progress=False)
     assert sorted(ran) == [("bati", ("bati-r",)), ("no-context", ())]
     assert result.count("done") == 3 and _statuses(out) == ["done"] * 3
     saved = {c.config.method: json.loads((c.config.out_dir / "eval.json").read_text()) for c in expand(grid, out)}
     assert saved["bati-r"]["trained_with"] == "bati-seed0" and saved["bati-r"]["method"] == "bati-r"
-    assert sweep(grid, out, show_progress=False).count("skipped") == 3
+    assert sweep_grid(grid, out, show_progress=False).count("skipped") == 3
     # bati finished, bati-r and bati-auto to do (another setting): bati-r trains (as bati) and hosts bati-auto
     ran.clear()
     later = Grid(methods=("bati", "bati-r", "bati-auto"), seeds=(0,), settings=TINY + ("iql.tau=0.8",))
-    sweep(Grid(methods=("bati",), seeds=(0,), settings=later.settings), out, show_progress=False)
+    sweep_grid(Grid(methods=("bati",), seeds=(0,), settings=later.settings), out, show_progress=False)
     ran.clear()
-    assert sweep(later, out, show_progress=False).count("done") == 2 and ran == [("bati-r", ("bati-auto",))]
+    assert sweep_grid(later, out, show_progress=False).count("done") == 2 and ran == [("bati-r", ("bati-auto",))]
     auto = json.loads((next(c for c in expand(later, out) if c.config.method == "bati-auto").config.out_dir
                        / "eval.json").read_text())
     assert auto["trained_with"] == "bati-r-seed0" and auto["method"] == "bati-auto"
@@ -210,7 +210,7 @@ def test_the_reference_returns_are_computed_once_per_collection(tmp_path, local,
     real = train_module.reference_returns
     monkeypatch.setattr(train_module, "reference_returns", lambda *a, **k: calls.append(1) or real(*a, **k))
     grid = Grid(methods=("bati", "no-context", "oracle"), seeds=(0,), settings=TINY)
-    sweep(grid, tmp_path / "sweep", show_progress=False)
+    sweep_grid(grid, tmp_path / "sweep", show_progress=False)
     saved = [json.loads((c.config.out_dir / "eval.json").read_text())["reference_returns"]
              for c in expand(grid, tmp_path / "sweep")]
     assert len(calls) == 1 and saved[0] == saved[1] == saved[2] and set(saved[0]) == {"random", "expert"}
@@ -258,7 +258,7 @@ def test_a_second_sweep_on_the_same_record_is_refused_and_writes_nothing(tmp_pat
     monkeypatch.setattr(sweep_module, "run_job", lambda *a, **k: pytest.fail("the refused sweep trained a cell"))
     with record_lock(out, "sweep.json"):  # another sweep is running on this record
         with pytest.raises(LockedError, match=r"the sweep record .*sweep\.json is in use by pid \d+"):
-            sweep(Grid(methods=("bati",), settings=TINY), out, show_progress=False)
+            sweep_grid(Grid(methods=("bati",), settings=TINY), out, show_progress=False)
         # another record in the same directory (another experiment's) is free
         with record_lock(out, "main.sweep.json"):
             pass
@@ -289,7 +289,7 @@ def test_ray_backend_runs_a_tiny_grid_on_a_local_ray(tmp_path):
     collect("PointGoal", "quick", 0, None, root, n_episodes=2, n_context_episodes=1, progress=False, workers=1)
     grid = Grid(methods=("bati",), seeds=(0, 1), settings=TINY + ("episodes_per_task=2", "context_episodes=1"))
     try:
-        result = sweep(grid, tmp_path / "sweep", data_root=root, backend="ray", workers=1, show_progress=False)
+        result = sweep_grid(grid, tmp_path / "sweep", data_root=root, backend="ray", workers=1, show_progress=False)
     finally:
         ray.shutdown()
     assert result.count("done") == 2, result.errors
@@ -298,7 +298,8 @@ def test_ray_backend_runs_a_tiny_grid_on_a_local_ray(tmp_path):
 
 
 def test_cli_experiment_report_only_trains_nothing_and_covers_every_cell(tmp_path, monkeypatch, capsys):
-    from bati.experiments.specs import get_spec, plan_experiment
+    from bati.experiments.pipeline import plan_experiment
+    from bati.experiments.specs import get_spec
 
     monkeypatch.setattr(sweep_module, "run_job", lambda *a, **k: pytest.fail("--report-only trained a cell"))
     out, data = tmp_path / "out", tmp_path / "data"

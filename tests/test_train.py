@@ -225,7 +225,8 @@ def test_auroc_matches_hand_computation():
 
 def test_infer_and_novelty_on_a_trained_bati_auto_run(tmp_path, monkeypatch, point_data, capsys):
     from bati.cli import main
-    from bati.experiments.probes import Probe, run_probe
+    from bati.experiments.probes import run_probe
+    from bati.report.probes import Probe
 
     monkeypatch.setattr(Collection, "load", lambda *a, **k: point_data)
     train(_config(tmp_path, "run", steps=5, eval_every=5, method="bati-auto"), show_progress=False)

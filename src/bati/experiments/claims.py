@@ -19,7 +19,6 @@ on it may change with more steps.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections import Counter
@@ -30,20 +29,20 @@ from pathlib import Path
 import numpy as np
 
 from bati.envs import FamilyUnavailable, get_family
-from bati.experiments.probes import read_probe
-from bati.experiments.specs import CONDITIONED, MUJOCO, get_spec, plan_experiment
+from bati.experiments.specs import CONDITIONED, MUJOCO
 from bati.experts.kinds import data_label
 from bati.io import short_commit
 from bati.report.convergence import NEGLIGIBLE, drift_interval, drift_verdict, run_drift
-from bati.report.runs import RunResult, jobs_wall_time
+from bati.report.probes import read_probe
+from bati.report.runs import jobs_wall_time
 from bati.report.stats import BOOTSTRAP_REPS, improvement_interval, iqm_interval, require_rliable
+from bati.report.stored_plan import PLAN_FILE, StoredPlan, read_plan
 
 MIN_SEEDS = 3
 REPS = BOOTSTRAP_REPS
 """Bootstrap replicates of every interval on the page."""
 BASELINES = ("focal", "csro", "unicorn", "recon", "dpt")
 """The paper's baselines (Table 4); the oracle, no-context and our BATI variants are not compared."""
-ALL_SEEDS = (0, 1, 2, 3, 4)
 
 
 @dataclass(frozen=True)
@@ -58,6 +57,11 @@ class Source:
     """Short name of data other than the default (the paper's: per-task experts where the family has them,
     docs/data.md): the task-conditioned expert's (`CONDITIONED_DATA`), which decides a claim only where the
     default data has no cells for it, or another setting, whose verdicts only stand beside (`every_scale`)."""
+    reports: tuple[tuple[str, str], ...] = ()
+    """(a claim's experiment, the experiment whose report holds its cells here) where they differ: a folder that
+    ran the `experts` study holds `main`'s cells of its families."""
+    experts: str = ""
+    """Keep only the cells of this experts kind (a study of both kinds' data: `experts`)."""
 
 
 CONDITIONED_DATA = data_label("conditioned")  # "one task-conditioned expert's data"
@@ -80,13 +84,15 @@ SOURCES = (
            "IQL 256x256)", Path("results/paper/experiments"), "paper"),
     # HalfCheetahDir's per-task cells on its first experts (40k transitions each, a third of the paper's Oracle)
     Source("cpu, per-task experts of 40k transitions (HalfCheetahDir's first experts, since retrained)",
-           Path("results/cpu/experts-40k"), "cpu", ("experts=per-task",), data="per-task experts, 40k"),
+           Path("results/cpu/experts-40k"), "cpu", data="per-task experts, 40k", reports=(("main", "experts"),),
+           experts="per-task"),
     Source("cpu, Table 3's dataset size read in total (50 episodes per training task), our expert's data",
-           Path("results/cpu/total-data"), "cpu", ("episodes_per_task=50", CONDITIONED), data="total size"),
+           Path("results/cpu/total-data"), "cpu", ("episodes_per_task=50",), data="total size",
+           reports=(("main", "experts"),), experts="conditioned"),
     Source("cpu, Table 3's dataset size read in total (50 episodes per training task), per-task experts' data "
            "(HalfCheetahDir's 40k experts)",
-           Path("results/cpu/total-data"), "cpu", ("episodes_per_task=50", "experts=per-task"),
-           data="total size, per-task experts, 40k"),
+           Path("results/cpu/total-data"), "cpu", ("episodes_per_task=50",),
+           data="total size, per-task experts, 40k", reports=(("main", "experts"),), experts="per-task"),
 )
 
 
@@ -118,34 +124,56 @@ class Record:
         return self.p_test - self.p_train
 
 
+def source_plan(spec_name: str, source: Source, root: Path) -> StoredPlan | None:
+    """The experiment's plan at a source's scale and data, as its report stored it (`bati.report.stored_plan`): of
+    the report folders in the source's directory, the one whose plan has the source's settings, a method's own
+    settings (`csro.club_negatives=...`) aside; of several, the one with the fewest of those (the experiment's
+    report before a variant's, e.g. ER-TRL with an unbounded latent)."""
+    experiment = dict(source.reports).get(spec_name, spec_name)
+    found = []
+    for path in sorted((root / source.out_dir).glob(f"*/{PLAN_FILE}")):
+        plan = read_plan(path.parent)
+        if plan.experiment == experiment and plan.scale == source.scale and \
+                _data_settings(plan.settings) == _data_settings(source.settings):
+            found.append(plan)
+    return min(found, key=lambda plan: len(plan.settings), default=None)
+
+
+def _raw(value):
+    """A score where the run records no reference returns: its return as it is."""
+    return value
+
+
+def _data_settings(settings: tuple[str, ...]) -> tuple[str, ...]:
+    """The settings that apply to every method (a method's own, `section.key=value`, aside), sorted."""
+    return tuple(sorted(s.replace(" ", "") for s in settings if "." not in s.partition("=")[0]))
+
+
 def gather(spec_name: str, source: Source, root: Path) -> list[Record]:
-    """The records of the experiment's finished cells (and of their probes) at one scale."""
-    spec = get_spec(spec_name)
-    if source.scale not in spec.scales or not (root / source.out_dir).is_dir():  # (a plan costs seconds)
-        return []
-    plan = plan_experiment(spec, source.scale, root / source.out_dir, seeds=ALL_SEEDS, settings=source.settings)
+    """The records of the experiment's finished cells (and of their probes) at one scale and data."""
+    plan = source_plan(spec_name, source, root)
     records = []
-    for cell in plan.cells:
-        c = cell.config
-        try:
-            run = RunResult.from_dict(json.loads((c.out_dir / "eval.json").read_text()), c.out_dir / "eval.json")
-        except (OSError, ValueError, TypeError, AttributeError):
+    for cell in plan.cells if plan is not None else ():
+        if source.experts and cell.experts != source.experts:
             continue
-        score = (lambda v: run.normalised(v)) if run.reference_returns else (lambda v: v)  # noqa: E731
-        training = (run.total_wall_time(), f"{c.out_dir.parent}/{c.method}")
-        results = [(run.p_test_return, run.p_train_return, c.eval_context_length, run.commit, *training)]
-        probes = plan.probes.get(cell.id, ())
-        if probes:
+        run = cell.result()
+        if run is None:
+            continue
+        score = run.normalised if run.reference_returns else _raw
+        training = (run.total_wall_time(), f"{cell.run_dir.parent}/{cell.method}")
+        results = [(run.p_test_return, run.p_train_return, cell.eval_context_length, run.commit, *training)]
+        if cell.probes:
             results = [(p["p_test_return"], p["p_train_return"], p["context_length"], p.get("commit"),
-                        p.get("wall_time_s"), f"{c.out_dir}/{p['context_length']}")
-                       for p in (read_probe(c.out_dir, probe) for probe in probes)
+                        p.get("wall_time_s"), f"{cell.run_dir}/{p['context_length']}")
+                       for p in (read_probe(cell.run_dir, probe) for probe in cell.probes)
                        if p is not None and "p_test_return" in p]
             if results:  # the first probe's record carries the run's training (its own seconds are ~1% of it)
                 results[0] = (*results[0][:4], *training)
         drift = run_drift(run)  # a probe evaluates its cell's training run: the cell's drift
         for p_test, p_train, length, commit, wall, job in results:
-            records.append(Record(c.method, c.family, c.noise, c.seed, score(p_test), score(p_train), p_test,
-                                  length, commit, run.machine, wall or 0.0, job, drift, bool(run.reference_returns)))
+            records.append(Record(cell.method, cell.family, cell.noise, cell.seed, score(p_test), score(p_train),
+                                  p_test, length, commit, run.machine, wall or 0.0, job, drift,
+                                  bool(run.reference_returns)))
     return records
 
 

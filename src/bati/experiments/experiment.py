@@ -15,19 +15,9 @@ from typing import Annotated, Callable, Literal
 
 from bati.cli_hints import DEFAULT_IN_DOC
 from bati.config import ScaleName
+from bati.experiments.pipeline import ExperimentResult, Plan, plan_experiment, run_experiment
 from bati.experiments.report import experiment_report
-from bati.experiments.specs import (
-    SPECS,
-    ExperimentError,
-    ExperimentResult,
-    Plan,
-    default_out_dir,
-    describe,
-    get_spec,
-    plan_experiment,
-    run_experiment,
-    status_file,
-)
+from bati.experiments.specs import SPECS, ExperimentError, default_out_dir, describe, get_spec, status_file
 from bati.experiments.sweep import SweepFailed, record_lock
 
 WIDE = 120

@@ -30,12 +30,11 @@ from pathlib import Path
 
 from bati.envs import FamilyUnavailable
 from bati.errors import PathError
-from bati.experiments.experiment import job_plans
-from bati.experiments.report import cell_records, experiment_report
-from bati.experiments.specs import CONDITIONED, MAIN_METHODS, SCALES, SPECS, Plan, get_spec, plan_experiment
+from bati.experiments.specs import CONDITIONED, MAIN_METHODS, SCALES, SPECS, get_spec
 from bati.experts.kinds import data_label
 from bati.io import atomic_write_text, pack_jsonl, short_commit
 from bati.report.runs import ReportWarning, RunResult, find_eval_files, jobs_wall_time
+from bati.report.stored_plan import StoredPlan, read_plan
 
 RESULTS = Path("results")
 NOTES = RESULTS / "notes.md"
@@ -77,9 +76,9 @@ class Study:
     def cells_dir(self) -> Path:
         return self.out_dir or self.report.parent
 
-    def plan(self, root: Path) -> Plan:
-        return plan_experiment(get_spec(self.experiment), self.scale, root / self.cells_dir, seeds=self.seeds,
-                               settings=self.settings, methods=self.methods, families=self.families)
+    def plan(self, root: Path) -> StoredPlan | None:
+        """The experiment's plan as its report stored it (None: a report written before reports stored it)."""
+        return read_plan(root / self.report) if self.experiment is not None else None
 
     def job(self):
         """The `bati experiment` job that ran its cells (`command_line`)."""
@@ -220,16 +219,12 @@ class Summary:
 
 def summarise(study: Study, root: Path = Path(".")) -> Summary:
     """The study's numbers from its records: finished cells (of planned), commits, devices, wall time."""
-    plan = None
-    if study.experiment is not None:
-        try:
-            plan = study.plan(root)
-        except FamilyUnavailable:  # its family's extra is missing here (KuhnPoker: OpenSpiel): read what is there
-            pass
+    plan = study.plan(root)
     if plan is not None:
-        runs = cell_records(plan)[1]
-        planned, seeds = len(plan.cells), plan.seeds
-    elif study.experiment is not None:
+        cells = plan.selected()  # the study's own cells (its methods and families), not the folder's others
+        runs = [run for run in (cell.result() for cell in cells) if run is not None]
+        planned, seeds = len(cells), plan.seeds
+    elif study.experiment is not None:  # no stored plan: every run of its families in its folder
         families = {f for part in get_spec(study.experiment).parts for f in part.families}
         runs = [r for r in _read_runs(root / study.cells_dir) if r.family in families]
         planned, seeds = len(runs), tuple(sorted({r.seed for r in runs}))
@@ -426,7 +421,9 @@ def _headline_table(source, study: Study, summary: Summary, title: str, root: Pa
 
     records = [r for r in gather("main", source, root) if r.seed in summary.seeds]
     families = sorted({r.family for r in records})
-    missing = [f for f in dict.fromkeys(c.config.family for c in study.plan(root).cells) if f not in families]
+    plan = study.plan(root)
+    planned = dict.fromkeys(cell.family for cell in (plan.selected() if plan is not None else ()))
+    missing = [f for f in planned if f not in families]
     lines = [f"**{title}**: p_test score (normalised: 0 = random policy, 1 = the experts), IQM [95% CI] over seeds "
              f"{' '.join(map(str, summary.seeds))}, {source.scale} scale ({summary.finished} of {summary.planned} "
              f"cells{'; not run yet: ' + ', '.join(missing) if missing else ''}; [report]({study.report}/report.md)).",
@@ -475,6 +472,9 @@ def write_results(root: Path = Path("."), readme: bool = True) -> list[Path]:
 
 def regenerate_reports(root: Path = Path(".")) -> list[Path]:
     """Every experiment study's report written again from its cells (report-only); the report folders."""
+    from bati.experiments.experiment import job_plans
+    from bati.experiments.report import experiment_report
+
     done = []
     for study in studies(root):
         if study.experiment is not None:

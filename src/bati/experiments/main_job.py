@@ -21,7 +21,7 @@ from typing import Annotated
 from bati.cli_hints import DEFAULT_IN_DOC
 from bati.config import ScaleName
 from bati.errors import PartialFailure
-from bati.experiments.sweep import Grid, SweepError, expand, sweep
+from bati.experiments.sweep import Grid, SweepError, expand, sweep_grid
 from bati.io import atomic_write_json, atomic_write_text, check_directory
 from bati.report import build_report
 from bati.report.tables import METHOD_LABELS
@@ -88,7 +88,7 @@ def run_main_job(job: MainJob, show_progress: bool = True) -> dict:
     grid = job.grid()
     cells = expand(grid, out, job.data_root)  # every setting of every run, before the data is collected
     setting_dir = cells[0].config.out_dir.parent  # the job's runs, apart from other settings swept into `out`
-    result = sweep(grid, out, data_root=job.data_root, workers=job.workers, show_progress=show_progress)
+    result = sweep_grid(grid, out, data_root=job.data_root, workers=job.workers, show_progress=show_progress)
     if result.errors:
         raise MainJobFailed(f"{len(result.errors)} run(s) failed: " + "; ".join(result.errors.values()) +
                             f" (recorded in {out}/sweep.json); rerun the same command to retry them")

@@ -3,7 +3,8 @@
 Records come from the plan's cells: a run's eval.json (mean of its last 5 evaluations) or, for a
 spec with probes, each probe's JSON (mean of its repeated evaluations of the final checkpoint). A
 table cell is the mean ± std over seeds (std is shown from 2 seeds on), with the paper's value beside
-it. Writes `<out>/report.md`, `<out>/table.csv` and the spec's figures (an earlier report's figures
+it. Writes `<out>/report.md`, `<out>/table.csv`, `<out>/plan.json` (the plan its tables cover, for the readers
+that do not plan again: `bati.report.stored_plan`) and the spec's figures (an earlier report's figures
 left in `<out>`, e.g. of families this run did not select, are removed so none is mistaken for this one's):
 
 - curves: p_test and p_train learning curves per setting (the paper's Fig. 4 / 8 layout);
@@ -23,16 +24,25 @@ import numpy as np
 
 from bati.config import family_of
 from bati.errors import BatiError
+from bati.experiments.pipeline import Plan
+from bati.experiments.specs import Spec
 from bati.experts.kinds import data_label
-from bati.experiments.probes import probe_path, read_probe
-from bati.experiments.specs import Plan, Spec
 from bati.io import atomic_write_text, short_commit
-from bati.report.build import (_csv_text, group_runs, group_title, method_order, method_rows, plot_group,
-                               plot_profile)
+from bati.report.build import (
+    _csv_text,
+    group_runs,
+    group_title,
+    method_order,
+    method_rows,
+    plot_group,
+    plot_profile,
+)
 from bati.report.build import table_markdown as group_table
 from bati.report.curves import save_figure
 from bati.report.likelihood import SOURCES, read_likelihood_split
+from bati.report.probes import probe_path, read_probe
 from bati.report.runs import ReportWarning, RunResult, jobs_wall_time
+from bati.report.stored_plan import PLAN_FILE
 from bati.report.tables import METHOD_LABELS
 
 CSV_FIELDS = ("row", "column", "n_seeds", "seeds", "mean", "std", "paper")
@@ -424,12 +434,13 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "", selection: P
     markdown += "".join(f"\n![{name}]({name})\n" for name in figures)
     atomic_write_text(out_dir / "report.md", markdown)
     atomic_write_text(out_dir / "table.csv", _csv_text(("metric",) + CSV_FIELDS, csv_rows))
+    plan.stored(selection).write(out_dir)  # what `bati claims` and `bati results` read instead of planning again
     if curve_rows:
         atomic_write_text(out_dir / "curves.csv", _csv_text(CURVE_FIELDS, curve_rows))
     for old in [*out_dir.glob("curves-*.png"), *out_dir.glob("profile*.png"), out_dir / "vs.png", out_dir / "tsne.png"]:
         if old.name not in figures:  # an earlier report's figure (other families or settings): not this one's
             old.unlink(missing_ok=True)
-    files = [out_dir / "report.md", out_dir / "table.csv"] + [out_dir / "curves.csv"] * bool(curve_rows)
+    files = [out_dir / "report.md", out_dir / "table.csv", out_dir / PLAN_FILE] + [out_dir / "curves.csv"] * bool(curve_rows)
     files += [out_dir / f for f in figures]
     return {"markdown": markdown, "files": files, "records": records, "cells_done": len(runs)}
 

@@ -3,33 +3,22 @@
 A spec is one or more sweep grids (its parts), the probes run on their finished cells (evaluations
 of the final checkpoints under other test-time settings, e.g. Table 1's context lengths), the table
 it reports (rows x columns of a record key) and the paper's own numbers for that table, typed once
-here with the table or figure they come from. `run_experiment` expands the spec, runs what is not
-finished yet (a `bati sweep` of all its cells: resumable, idempotent) and its probes; the report is
-`bati.experiments.report`. Experiments share one results directory per scale (`default_out_dir`):
-a cell two specs have in common is trained once.
+here with the table or figure they come from. The specs are plain values (no JAX, no planning):
+`bati.experiments.pipeline` plans and runs them, `bati.experiments.report` reports them. Experiments share one
+results directory per scale (`default_out_dir`): a cell two specs have in common is trained once.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bati.envs import TaskFamily, family_names, get_family
+from bati.envs import TaskFamily
 from bati.errors import BatiError
-from bati.experiments.probes import (
-    Probe,
-    has_task_table,
-    likelihood_split_due,
-    run_probe,
-    save_likelihood_split,
-)
-from bati.experiments.sweep import Cell, Grid, SweepResult, expand, record_lock, sweep
-from bati.methods import training_of
-from bati.run_dir import check_seeds
+from bati.report.probes import Probe
 
 SCALES = ("quick", "cpu", "paper")
 MUJOCO = ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")
@@ -333,123 +322,6 @@ def get_spec(name: str) -> Spec:
     if name not in SPECS:
         raise ExperimentError(f"unknown experiment {name!r}; choose one of: {', '.join(SPECS)} (bati experiment list)")
     return SPECS[name]
-
-
-@dataclass
-class Plan:
-    """A spec made concrete for a scale, seeds and overrides: its grids and cells."""
-
-    spec: Spec
-    scale: str
-    seeds: tuple[int, ...]
-    grids: list[Grid]
-    cells: list[Cell]
-    probes: dict[str, tuple[Probe, ...]] = field(default_factory=dict)  # cell id -> its probes
-
-
-def plan_experiment(spec: Spec, scale: str, out_dir: Path, *, seeds: tuple[int, ...] | None = None,
-                    settings: tuple[str, ...] = (), methods: tuple[str, ...] = (), families: tuple[str, ...] = (),
-                    data_root: Path = Path("data")) -> Plan:
-    """Expand `spec` at `scale`. `settings` (KEY=VALUE) apply to every cell but may not change what the
-    spec itself sets; `methods` / `families` keep a subset of the spec's, in their order (the cells', hence the
-    jobs' order). ExperimentError otherwise."""
-    if scale not in spec.scales:
-        raise ExperimentError(f"experiment {spec.name!r} has no {scale!r} scale; choose one of: {', '.join(spec.scales)}")
-    try:
-        seeds = check_seeds(default_seeds(spec, scale) if seeds is None else seeds)
-    except ValueError as err:
-        raise ExperimentError(str(err)) from err
-    own = {s.partition("=")[0].strip().replace("-", "_") for part in spec.parts for s in part.settings}
-    clash = sorted(own & {s.partition("=")[0].strip().replace("-", "_") for s in settings})
-    if clash:
-        raise ExperimentError(f"experiment {spec.name!r} sets {', '.join(clash)} itself; leave it out of --settings")
-    own = [f for f in families if f not in {f for p in spec.parts for f in p.families} and f in family_names()]
-    parts = spec.parts + (tuple(p for f in own for p in spec.for_family(get_family(f))) if spec.for_family else ())
-    spec_methods = {m for p in spec.parts for m in p.methods}
-    spec_families = {f for p in parts for f in p.families}
-    for kind, chosen, allowed in (("method", methods, spec_methods), ("family", families, spec_families)):
-        extra = [x for x in chosen if x not in allowed]
-        if extra:
-            hint = "" if kind == "method" else (
-                " or any other family (`bati envs`: PointGoal, or one registered with register_family)" if spec.for_family else
-                f" (a family of your own runs in: {', '.join(n for n, s in SPECS.items() if s.for_family)})")
-            raise ExperimentError(f"experiment {spec.name!r} has no {kind} {', '.join(map(repr, extra))}; "
-                                  f"its {kind} choices: {', '.join(sorted(allowed))}{hint}")
-    grids, cells, probes = [], [], {}
-    for part in parts:
-        # a chosen subset runs in the order chosen (a short GPU session runs the methods it names first)
-        keep_methods = tuple(m for m in dict.fromkeys(methods or part.methods) if m in part.methods)
-        keep_families = tuple(f for f in dict.fromkeys(families or part.families) if f in part.families)
-        if not keep_methods or not keep_families:
-            continue
-        grid = Grid(families=keep_families, methods=keep_methods, seeds=seeds, noises=part.noises, scales=(scale,),
-                    settings=part.settings + tuple(settings))
-        grids.append(grid)
-        for cell in expand(grid, out_dir, data_root):
-            if cell.id not in probes:
-                cells.append(cell)
-            probes[cell.id] = tuple(dict.fromkeys(probes.get(cell.id, ()) + part.probes))
-    return Plan(spec, scale, seeds, grids, cells, probes)
-
-
-@dataclass
-class ExperimentResult:
-    plan: Plan
-    sweep: SweepResult
-    probes_done: int
-    probe_errors: dict[str, str]
-    wall_time_s: float
-
-
-def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
-                   backend: str = "local", address: str | None = None, show_progress: bool = True,
-                   on_probe: Callable[[str], None] | None = None, locked: bool = False) -> ExperimentResult:
-    """Run the plan's cells that are not finished (one sweep; where the spec keeps it, each BATI run's likelihood
-    split as its job ends), then the probes of the finished ones, holding the experiment's sweep record all along
-    (a second process on it is refused at once;
-    `locked`: the caller holds `record_lock(out_dir, status_file(plan.spec))` already)."""
-    if not locked:
-        with record_lock(out_dir, status_file(plan.spec)):
-            return run_experiment(plan, out_dir, data_root=data_root, workers=workers, backend=backend,
-                                  address=address, show_progress=show_progress, on_probe=on_probe, locked=True)
-    start = time.perf_counter()
-    done, errors = 0, {}
-
-    def split(cells) -> None:
-        """The likelihood split of the cells' BATI runs where the spec keeps it and it is due. The split is
-        the trained model's: bati-r and bati-auto share bati's training, so bati's run has it."""
-        nonlocal done
-        for cell in cells:
-            c = cell.config
-            if not (plan.spec.likelihood_split and has_task_table(c.method) and training_of(c.method) == c.method
-                    and likelihood_split_due(c.out_dir, c.steps, c.eval_context_length)):
-                continue
-            label = f"{cell.label} likelihood"
-            if on_probe is not None:
-                on_probe(label)
-            try:
-                save_likelihood_split(c.out_dir, c.eval_context_length)
-                done += 1
-            except Exception as err:  # reported like a failed probe
-                errors[label] = f"{type(err).__name__}: {err}"
-
-    # each job's split right after it (its checkpoint is at hand; a session cut later keeps it), the probes after all
-    result = sweep(plan.grids, out_dir, data_root=data_root, workers=workers, backend=backend, address=address,
-                   show_progress=show_progress, status_file=status_file(plan.spec), locked=True, on_job_done=split)
-    for cell in plan.cells:
-        if result.status.get(cell.id) not in ("done", "skipped"):
-            continue
-        for probe in plan.probes.get(cell.id, ()):
-            label = f"{cell.label} {probe.name}"
-            if on_probe is not None:
-                on_probe(label)
-            try:
-                run_probe(cell.config.out_dir, probe)
-                done += 1
-            except Exception as err:  # a failed probe is reported; the others go on
-                errors[label] = f"{type(err).__name__}: {err}"
-        split([cell])  # a skipped cell's split, where its checkpoint is at hand and none is saved
-    return ExperimentResult(plan, result, done, errors, time.perf_counter() - start)
 
 
 def status_file(spec: Spec) -> str:

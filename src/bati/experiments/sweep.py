@@ -2,7 +2,8 @@
 
 A cell is one fully resolved `TrainConfig`; its identity is that whole config (where it lives
 aside). Cells that differ only in their seed form one job, trained as one program vmapped over
-the seeds (`train_seeds`). Layout of a sweep directory:
+the seeds (`train_seeds`). `sweep` runs cells (an experiment's plan hands its own down); `sweep_grid` expands a
+grid into them once (`bati sweep`, `bati run`). Layout of a sweep directory:
 
     <out>/sweep.json                               the cells and their status (rewritten atomically)
     <out>/.sweep.json.lock                         held while a sweep writes that record
@@ -315,34 +316,47 @@ def record_lock(out_dir: Path, status_file: str = "sweep.json"):
     return hold_lock(out_dir / f".{status_file}.lock", f"the sweep record {out_dir / status_file}")
 
 
-def sweep(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
+def sweep_grid(grid: Grid | list[Grid], out_dir: Path, *, data_root: Path = Path("data"), **options) -> SweepResult:
+    """`sweep` over the cells of `grid` (or of several grids), expanded once here; the status record keeps the
+    grid. `options`: those of `sweep`."""
+    grids = [grid] if isinstance(grid, Grid) else list(grid)
+    if not grids:
+        raise SweepError("no grid to sweep")
+    cells = list({c.id: c for g in grids for c in expand(g, out_dir, data_root)}.values())
+    return sweep(cells, out_dir, data_root=data_root, record=grids_record(grids), **options)
+
+
+def grids_record(grids: list[Grid]) -> dict:
+    """The grids a sweep's cells come from, as its status record keeps them."""
+    return {"grid": asdict(grids[0])} if len(grids) == 1 else {"grids": [asdict(g) for g in grids]}
+
+
+def sweep(cells: list[Cell], out_dir: Path, *, data_root: Path = Path("data"), workers: int = 1,
           backend: Literal["local", "ray"] = "local", address: str | None = None,
           show_progress: bool = True, status_file: str = "sweep.json", locked: bool = False,
-          on_job_done: Callable[[list[Cell]], None] | None = None) -> SweepResult:
-    """Run every cell of `grid` (or of several grids, e.g. an experiment's parts) that is not finished
-    yet; see the module docstring. `status_file` names the status record in `out_dir` (experiments
-    sharing one directory, and so their common cells, keep one each); `locked`: the caller already
-    holds its `record_lock`; `on_job_done`: called with a finished job's done cells (those evaluated
-    alongside too) once they are recorded, before the next job starts (an experiment's per-run work, kept
-    when a session ends before the sweep does)."""
+          on_job_done: Callable[[list[Cell]], None] | None = None, record: dict | None = None) -> SweepResult:
+    """Run every one of `cells` (a grid's: `sweep_grid`; an experiment plan's) that is not finished yet; see the
+    module docstring. `status_file` names the status record in `out_dir` (experiments sharing one directory, and
+    so their common cells, keep one each); `locked`: the caller already holds its `record_lock`; `on_job_done`:
+    called with a finished job's done cells (those evaluated alongside too) once they are recorded, before the next
+    job starts (an experiment's per-run work, kept when a session ends before the sweep does); `record`: what the
+    status record says the cells come from (their grids)."""
     out_dir = Path(out_dir)
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise SweepError(f"workers must be an integer >= 1, got {workers!r}")
     if backend not in ("local", "ray"):
         raise SweepError(f"unknown backend {backend!r}; choose local or ray")
     check_out_dir(out_dir)
+    if not cells:
+        raise SweepError("no cell to sweep")
     if not locked:
         with record_lock(out_dir, status_file):
-            return sweep(grid, out_dir, data_root=data_root, workers=workers, backend=backend, address=address,
-                         show_progress=show_progress, status_file=status_file, locked=True, on_job_done=on_job_done)
+            return sweep(cells, out_dir, data_root=data_root, workers=workers, backend=backend, address=address,
+                         show_progress=show_progress, status_file=status_file, locked=True, on_job_done=on_job_done,
+                         record=record)
     start = time.perf_counter()
-    grids = [grid] if isinstance(grid, Grid) else list(grid)
-    if not grids:
-        raise SweepError("no grid to sweep")
-    cells = list({c.id: c for g in grids for c in expand(g, out_dir, data_root)}.values())
     ray = connect_ray(address) if backend == "ray" else None
-    header = {**({"grid": asdict(grids[0])} if len(grids) == 1 else {"grids": [asdict(g) for g in grids]}),
-              "data_root": str(data_root), "backend": backend, "workers": workers}
+    header = {**(record or {}), "data_root": str(data_root), "backend": backend, "workers": workers}
     progress = _SweepStatus(cells, out_dir / status_file, header, on_job_done)
     pending = [c for c in cells if progress.status[c.id] == "pending"]
     jobs = make_jobs(pending)
@@ -417,8 +431,8 @@ def sweep_and_show(job: SweepJob, *, console, error_console) -> None:
 
     from bati.report.build import build_and_show_report
 
-    result = sweep(job.grid, job.out_dir, data_root=job.data_root, workers=job.workers, backend=job.backend,
-                   address=job.address, show_progress=console.is_terminal)
+    result = sweep_grid(job.grid, job.out_dir, data_root=job.data_root, workers=job.workers, backend=job.backend,
+                        address=job.address, show_progress=console.is_terminal)
     counts = {s: result.count(s) for s in ("done", "skipped", "failed")}
     console.print(f"sweep {result.out_dir}: {counts['done']} cell(s) run, {counts['skipped']} already done, "
                   f"{counts['failed']} failed, in {result.wall_time_s / 60:.1f} min", soft_wrap=True)
