@@ -29,7 +29,6 @@ from bati.experiments.specs import Spec
 from bati.experts.kinds import data_label
 from bati.io import atomic_write_text, short_commit
 from bati.report.build import (
-    _csv_text,
     group_runs,
     group_title,
     method_order,
@@ -43,7 +42,7 @@ from bati.report.likelihood import SOURCES, read_likelihood_split
 from bati.report.probes import probe_path, read_probe
 from bati.report.runs import ReportWarning, RunResult, jobs_wall_time
 from bati.report.stored_plan import PLAN_FILE
-from bati.report.tables import METHOD_LABELS
+from bati.report.tables import METHOD_LABELS, csv_text
 
 CSV_FIELDS = ("row", "column", "n_seeds", "seeds", "mean", "std", "paper")
 
@@ -433,10 +432,10 @@ def experiment_report(plan: Plan, out_dir: Path, command: str = "", selection: P
     markdown = "\n".join(line for line in header if line is not None) + "\n" + "\n".join(sections)
     markdown += "".join(f"\n![{name}]({name})\n" for name in figures)
     atomic_write_text(out_dir / "report.md", markdown)
-    atomic_write_text(out_dir / "table.csv", _csv_text(("metric",) + CSV_FIELDS, csv_rows))
+    atomic_write_text(out_dir / "table.csv", csv_text(("metric",) + CSV_FIELDS, csv_rows))
     plan.stored(selection).write(out_dir)  # what `bati claims` and `bati results` read instead of planning again
     if curve_rows:
-        atomic_write_text(out_dir / "curves.csv", _csv_text(CURVE_FIELDS, curve_rows))
+        atomic_write_text(out_dir / "curves.csv", csv_text(CURVE_FIELDS, curve_rows))
     for old in [*out_dir.glob("curves-*.png"), *out_dir.glob("profile*.png"), out_dir / "vs.png", out_dir / "tsne.png"]:
         if old.name not in figures:  # an earlier report's figure (other families or settings): not this one's
             old.unlink(missing_ok=True)
