@@ -2,7 +2,7 @@
 it (the sweep of its cells; each BATI run's likelihood split as its job ends; the probes of the finished cells).
 
 `plan_experiment` expands a spec (`bati.experiments.specs`) at a scale; `run_experiment` runs what is not finished
-(a `bati sweep` of the plan's grids: resumable, idempotent); the report is `bati.experiments.report`, which stores
+(a sweep of the plan's cells: resumable, idempotent); the report is `bati.experiments.report`, which stores
 the plan beside it (`Plan.stored`) for the readers that must not plan again (`bati claims`, `bati results`).
 """
 
