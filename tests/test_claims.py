@@ -9,10 +9,12 @@ from pathlib import Path
 import pytest
 
 from bati.cli import main
-from bati.experiments import claims as claims_module
-from bati.experiments.claims import CLAIMS, CONDITIONED_DATA, SOURCES, claims_markdown, decide, overall
 from bati.experiments.pipeline import plan_experiment
 from bati.experiments.specs import get_spec
+from bati.report import claims as claims_module
+from bati.report import verdicts as verdict_rules
+from bati.report.claim_records import CONDITIONED_DATA, SOURCES
+from bati.report.claims import CLAIMS, claims_markdown, decide, overall
 from bati.report.probes import probe_path
 
 CPU = next(s for s in SOURCES if s.scale == "cpu" and not s.data)  # the paper's data: per-task experts
@@ -23,7 +25,7 @@ CPU_CONDITIONED = next(s for s in SOURCES if s.scale == "cpu" and s.data == COND
 def fewer_replicates(monkeypatch):
     """50 bootstrap replicates instead of the page's 2,000: the verdicts of these clear-cut cases do not
     depend on it, and the suite stays fast."""
-    monkeypatch.setattr(claims_module, "REPS", 50)
+    monkeypatch.setattr(verdict_rules, "REPS", 50)
 QUICK = SOURCES[0]
 
 

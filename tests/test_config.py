@@ -4,8 +4,10 @@ recorded by older versions keep their identity and digests."""
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 from pathlib import Path
+from typing import get_type_hints
 
 import gymnasium as gym
 import pytest
@@ -76,6 +78,20 @@ def test_every_method_with_hyperparameters_has_its_section():
         if cls.Config is not None:
             assert sections[cls.config_key] is cls.Config, name
             assert dataclasses.is_dataclass(cls.Config) and cls.Config.__dataclass_params__.frozen
+
+
+def test_the_built_in_sections_are_declared_fields_holding_their_methods_config():
+    """TrainConfig declares a field per section of the methods in METHODS (nothing added at import time for
+    them), holding the Config the methods read, in METHODS' order, after the run settings."""
+    hints = get_type_hints(TrainConfig, include_extras=False)
+    declared = [name for name in TrainConfig.__dataclass_fields__ if name in method_sections()]
+    assert declared == list(method_sections()) == list(dict.fromkeys(
+        cls.config_key for cls in METHODS.values() if cls.config_key is not None))
+    source = inspect.getsource(TrainConfig)
+    for name, config_class in method_sections().items():
+        assert hints[name] is config_class, name
+        assert f"    {name}: " in source, f"{name} is added at import time, not declared"
+    assert [f.name for f in dataclasses.fields(TrainConfig)][-len(declared):] == declared
 
 
 def test_config_json_holds_only_the_run_methods_section_and_reads_back():

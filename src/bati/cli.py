@@ -19,7 +19,7 @@ from rich.markup import escape
 
 from bati.cli_hints import DEFAULT_IN_DOC
 from bati.errors import BatiWarning, PartialFailure
-from bati.experiments.claims import write_and_show_claims
+from bati.report.claims import write_and_show_claims
 from bati.experiments.index import update_results
 from bati.io import git_commit
 from bati.processes import TERMINATED_EXIT_CODE, Terminated, sigterm_as_interrupt

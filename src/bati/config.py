@@ -1,7 +1,8 @@
 """`TrainConfig`: everything a training run is, as one dataclass (the CLI is this dataclass, via tyro).
 
 Its last fields are the methods' hyperparameter sections, one per `config_key` of the methods in
-`bati.methods.METHODS` when this module is imported. A run directory's config.json is `config.record()`:
+`bati.methods.METHODS`: the built-in ones declared, one for a method of your own added when this module is
+imported. A run directory's config.json is `config.record()`:
 the resolved config with only the run's own method's hyperparameters. A run's identity is that record,
 where it lives aside (NOT_IDENTITY). Records of older versions are read by `bati.records`.
 """
@@ -24,6 +25,12 @@ from bati.envs import TaskFamily, TaskSplit
 from bati.experts.kinds import ExpertsKind, family_experts
 from bati.io import read_run_config
 from bati.methods import METHODS, method_config_key, method_sections, section_methods, section_readers
+from bati.methods.bati import BATI, BATIConfig
+from bati.methods.csro import CSROConfig
+from bati.methods.dpt import DPTConfig
+from bati.methods.er_trl import ERTRL, ERTRLConfig
+from bati.methods.focal import FOCALConfig
+from bati.methods.unicorn import UNICORNConfig
 from bati.records import (  # noqa: F401 (differing_settings, digest_view: imported from here by others)
     RECORD_ONLY,
     RECORD_VERSION,
@@ -70,23 +77,21 @@ def get_scale(name: str) -> Scale:
     return SCALES[name]
 
 
-_SECTION_METHODS = section_methods()
-
-
-def with_method_sections(cls: type) -> type:
-    """`cls`, before it becomes a dataclass, with a field per hyperparameter section at its end holding the
-    section's Config (helped in `bati train --help` by the method's `config_help`, else the Config's docstring)."""
-    for key, method in _SECTION_METHODS.items():
-        kind = method.Config
-        if method.config_help is not None:
-            kind = Annotated[kind, tyro.conf.arg(help=method.config_help)]
-        cls.__annotations__[key] = kind
-        setattr(cls, key, field(default_factory=method.Config))
+def with_registered_sections(cls: type) -> type:
+    """`cls`, before it becomes a dataclass, with a field at its end for the section of each method registered
+    in `METHODS` beyond the declared ones (a method of your own, docs/extending.md)."""
+    for key, method in section_methods().items():
+        if key not in cls.__annotations__:
+            kind = method.Config
+            if method.config_help is not None:
+                kind = Annotated[kind, tyro.conf.arg(help=method.config_help)]
+            cls.__annotations__[key] = kind
+            setattr(cls, key, field(default_factory=method.Config))
     return cls
 
 
 @dataclass
-@with_method_sections
+@with_registered_sections
 class TrainConfig:
     family: Annotated[str | None, DEFAULT_IN_DOC] = None
     """The task family (default: PointGoal; with --datasets: `own`, your data)."""
@@ -165,7 +170,15 @@ class TrainConfig:
     log_to: tuple[str, ...] = ()
     """Also log to: tensorboard (`pip install 'bati[tensorboard]'`), wandb (`pip install 'bati[wandb]'`);
     the JSONL files are always written. Not part of the run's identity."""
-    # Then each method's hyperparameters (`with_method_sections`; config.json records the run's own method's).
+    # Then each method's hyperparameters, a section per `config_key` (config.json records the run's own method's),
+    # and the section of each method registered beyond these (`with_registered_sections`).
+
+    bati: Annotated[BATIConfig, tyro.conf.arg(help=BATI.config_help)] = field(default_factory=BATIConfig)
+    unicorn: UNICORNConfig = field(default_factory=UNICORNConfig)
+    csro: CSROConfig = field(default_factory=CSROConfig)
+    focal: FOCALConfig = field(default_factory=FOCALConfig)
+    ertrl: Annotated[ERTRLConfig, tyro.conf.arg(help=ERTRL.config_help)] = field(default_factory=ERTRLConfig)
+    dpt: DPTConfig = field(default_factory=DPTConfig)
 
     # --- reading and writing ------------------------------------------------------------------
     @classmethod

@@ -28,6 +28,8 @@ _FAMILIES = {
 }
 FAMILY_NAMES = tuple(_FAMILIES)
 """The built-in families (`family_names()` adds the ones registered with `register_family`)."""
+MUJOCO_FAMILIES = ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")
+"""The paper's five MuJoCo families (Table 4's), in the order its tables and ours show them."""
 _REGISTERED: dict[str, type[TaskFamily]] = {}
 # families that need an optional extra: name -> (module it imports, extra, what it is, its pip package)
 _EXTRAS = {"KuhnPoker": ("pyspiel", "games", "OpenSpiel", "open_spiel")}

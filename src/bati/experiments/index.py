@@ -30,7 +30,8 @@ from pathlib import Path
 
 from bati.envs import FamilyUnavailable
 from bati.errors import PathError
-from bati.experiments.specs import CONDITIONED, MAIN_METHODS, SCALES, SPECS, get_spec
+from bati.experiments.specs import MAIN_METHODS, SCALES, SPECS, get_spec
+from bati.experts.kinds import CONDITIONED_SETTING as CONDITIONED
 from bati.experts.kinds import data_label
 from bati.io import atomic_write_text, pack_jsonl, short_commit
 from bati.report.runs import ReportWarning, RunResult, find_eval_files, jobs_wall_time
@@ -397,7 +398,7 @@ def headline_markdown(root: Path = Path(".")) -> str:
     """The IQM of the normalised p_test score per method and family of `main`: on the paper's data (per-task
     experts), then on one task-conditioned expert's; each at the largest scale where at least ENOUGH of its cells
     are finished, else the largest with any (its missing families named)."""
-    from bati.experiments.claims import CONDITIONED_DATA, SOURCES
+    from bati.report.claim_records import CONDITIONED_DATA, SOURCES
 
     mains = {(s.cells_dir, s.scale, s.settings): s for s in studies(root) if s.experiment == "main"}
     tables = []
@@ -416,7 +417,7 @@ def headline_markdown(root: Path = Path(".")) -> str:
 
 
 def _headline_table(source, study: Study, summary: Summary, title: str, root: Path) -> str:
-    from bati.experiments.claims import gather
+    from bati.report.claim_records import gather
     from bati.report.stats import iqm_interval
 
     records = [r for r in gather("main", source, root) if r.seed in summary.seeds]

@@ -16,12 +16,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bati.envs import MUJOCO_FAMILIES as MUJOCO
 from bati.envs import TaskFamily
 from bati.errors import BatiError
 from bati.report.probes import Probe
 
 SCALES = ("quick", "cpu", "paper")
-MUJOCO = ("AntDir", "HalfCheetahVel", "HalfCheetahDir", "HopperParam", "WalkerParam")
 MAIN_METHODS = ("bati", "bati-r", "bati-auto", "recon", "focal", "unicorn", "csro", "er-trl", "dpt", "oracle",
                 "no-context")
 # Beyond the paper (docs/methods.md): BATI with Eq. 8's terms weighted by calibration, beside its two fixed forms.
@@ -92,10 +92,6 @@ class Spec:
     by_task_value: bool = False
     """Report each method's return on the test tasks of each task value, where a family's tasks take a few values
     (HalfCheetahDir: left and right): which tasks a method fails on."""
-
-
-CONDITIONED = "experts=conditioned"
-"""The setting of data collected by the family's one task-conditioned expert (the default is per-task experts)."""
 
 
 def _settings(**values) -> tuple[str, ...]:

@@ -7,6 +7,8 @@ from typing import Literal
 ExpertsKind = Literal["conditioned", "per-task"]
 EXPERT_KINDS: tuple[ExpertsKind, ...] = ("conditioned", "per-task")
 """One task-conditioned SAC per family (ours) or one SAC per training task (the paper's, App. C.2)."""
+CONDITIONED_SETTING = "experts=conditioned"
+"""The setting of data collected by the family's one task-conditioned expert (the default is per-task experts)."""
 
 
 EXPERT_LABELS = {"conditioned": "one task-conditioned expert", "per-task": "per-task experts"}
