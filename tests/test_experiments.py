@@ -493,3 +493,34 @@ def test_an_experiment_refuses_to_replace_the_report_of_other_settings(tmp_path)
     run_experiment_job(ExperimentJob("main", settings=("steps=12000", "experts=conditioned"), **job),
                        show_progress=False)
     assert "experts=conditioned" in report.read_text()
+
+
+@pytest.mark.parametrize("name, methods, families", [
+    ("main", ("focal", "bati"), ("HalfCheetahDir", "AntDir")),  # the order chosen, not the spec's
+    ("main", ("csro",), ()),
+    ("noise", (), ("HalfCheetahDir",)),
+    ("experts", ("bati-r", "oracle"), ("AntDir",)),
+    ("context-length", ("bati",), ()),
+    ("main", (), ("PointGoal",)),  # a family of one's own: the spec's parts for it
+])
+def test_a_selection_of_the_whole_plan_is_the_plan_made_with_it(name, methods, families):
+    """`bati experiment` plans once: the cells it runs are a selection of the whole plan its report covers, the
+    same cells, grids and probes in the same order as planning with the selection."""
+    from bati.experiments.experiment import ExperimentJob, job_plans
+
+    spec = get_spec(name)
+    planned = plan_experiment(spec, "quick", OUT, methods=methods, families=families)
+    selected, whole = job_plans(ExperimentJob(name, methods=methods, families=families), OUT)
+    assert [c.id for c in selected.cells] == [c.id for c in planned.cells]
+    assert selected.grids == planned.grids and selected.probes == planned.probes
+    assert {c.id for c in selected.cells} <= {c.id for c in whole.cells}
+    assert selected.stored() == planned.stored()
+
+
+def test_a_selection_the_experiment_lacks_is_one_line():
+    from bati.experiments.experiment import ExperimentJob, job_plans
+
+    with pytest.raises(ExperimentError, match="experiment 'noise' has no method 'dpt'"):
+        job_plans(ExperimentJob("noise", methods=("dpt",)), OUT)
+    with pytest.raises(ExperimentError, match="experiment 'kuhn' has no family 'AntDir'"):
+        job_plans(ExperimentJob("kuhn", families=("AntDir",)), OUT)

@@ -15,7 +15,7 @@ from typing import Annotated, Callable, Literal
 
 from bati.cli_hints import DEFAULT_IN_DOC
 from bati.config import ScaleName
-from bati.experiments.pipeline import ExperimentResult, Plan, plan_experiment, run_experiment
+from bati.experiments.pipeline import ExperimentResult, Plan, plan_experiment, run_experiment, spec_parts
 from bati.experiments.report import experiment_report
 from bati.experiments.specs import SPECS, ExperimentError, default_out_dir, describe, get_spec, status_file
 from bati.experiments.sweep import SweepFailed, record_lock
@@ -83,16 +83,16 @@ class ExperimentOutcome:
 
 def job_plans(job: ExperimentJob, out: Path) -> tuple[Plan, Plan]:
     """The cells the job runs, and those its report covers: every cell of the experiment at this scale in `out`,
-    finished by this command or another (the spec's families and any other family the job names)."""
+    finished by this command or another (the spec's families and any other family the job names). Planned once:
+    the job's cells are a selection of the whole."""
     spec = get_spec(job.name)
     settings = job.settings + ((f"zoo_dir={job.zoo_dir}",) if job.zoo_dir is not None else ())
-    plan = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=settings, methods=job.methods,
-                           families=job.families, data_root=job.data_root)
+    spec_parts(spec, job.methods, job.families)  # a method or family the experiment lacks: one line, first
     paper_families = tuple(dict.fromkeys(f for part in spec.parts for f in part.families))
     others = tuple(f for f in job.families if f not in paper_families)
     whole = plan_experiment(spec, job.scale, out, seeds=job.seeds, settings=settings, data_root=job.data_root,
                             families=paper_families + others if others else ())
-    return plan, whole
+    return whole.select(job.methods, job.families), whole
 
 
 def run_experiment_job(job: ExperimentJob, show_progress: bool = True,

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from bati.envs import family_names, get_family
@@ -24,17 +24,67 @@ from bati.run_dir import check_seeds
 
 
 @dataclass
+class Part:
+    """One part of a spec made concrete: its grid, the grid's cells and the probes run on them."""
+
+    grid: Grid
+    cells: list[Cell]
+    probes: tuple[Probe, ...] = ()
+
+
+@dataclass
 class Plan:
-    """A spec made concrete for a scale, seeds and overrides: its grids and cells."""
+    """A spec made concrete for a scale, seeds and overrides: its parts (grids and their cells) and its cells,
+    each once (a cell of two parts gets both parts' probes)."""
 
     spec: Spec
     scale: str
     seeds: tuple[int, ...]
-    grids: list[Grid]
-    cells: list[Cell]
-    probes: dict[str, tuple[Probe, ...]] = field(default_factory=dict)  # cell id -> its probes
+    parts: list[Part]
     settings: tuple[str, ...] = ()
     """The KEY=VALUE settings given beyond the spec's own."""
+    cells: list[Cell] = field(init=False)
+    probes: dict[str, tuple[Probe, ...]] = field(init=False)
+    """Cell id -> its probes."""
+
+    def __post_init__(self) -> None:
+        self.cells, self.probes = [], {}
+        for part in self.parts:
+            for cell in part.cells:
+                if cell.id not in self.probes:
+                    self.cells.append(cell)
+                self.probes[cell.id] = tuple(dict.fromkeys(self.probes.get(cell.id, ()) + part.probes))
+
+    @property
+    def grids(self) -> list[Grid]:
+        return [part.grid for part in self.parts]
+
+    def select(self, methods: tuple[str, ...] = (), families: tuple[str, ...] = ()) -> Plan:
+        """The plan's cells of `methods` and `families` (default: all), in the order chosen (a short GPU session
+        runs the methods it names first): the plan `plan_experiment` makes with them, without planning again
+        (a family the plan lacks that the spec would take is an ExperimentError, as any the spec would not)."""
+        spec_parts(self.spec, methods, families)  # a method or family the experiment lacks: one line
+        missing = [f for f in families if f not in {f for part in self.parts for f in part.grid.families}]
+        if missing:
+            raise ExperimentError(f"the plan of {self.spec.name!r} has no cells of {', '.join(missing)}: plan with it")
+        parts = []
+        for part in self.parts:
+            grid = part.grid
+            keep_methods = tuple(m for m in dict.fromkeys(methods or grid.methods) if m in grid.methods)
+            keep_families = tuple(f for f in dict.fromkeys(families or grid.families) if f in grid.families)
+            if not keep_methods or not keep_families:
+                continue
+            noise_rank = {}  # a family's eps in the grid's order, then the methods in the order chosen
+            for cell in part.cells:
+                noise_rank.setdefault((cell.config.family, cell.config.noise), len(noise_rank))
+            kept = sorted((i, cell) for i, cell in enumerate(part.cells)
+                          if cell.config.method in keep_methods and cell.config.family in keep_families)
+            kept.sort(key=lambda item: (keep_families.index(item[1].config.family),
+                                        noise_rank[item[1].config.family, item[1].config.noise],
+                                        keep_methods.index(item[1].config.method), item[0]))
+            parts.append(Part(replace(grid, families=keep_families, methods=keep_methods),
+                              [cell for _, cell in kept], part.probes))
+        return Plan(self.spec, self.scale, self.seeds, parts, self.settings)
 
     def stored(self, selection: Plan | None = None) -> StoredPlan:
         """The plan as its report stores it (`bati.report.stored_plan`): what claims and results read;
@@ -63,6 +113,23 @@ def plan_experiment(spec: Spec, scale: str, out_dir: Path, *, seeds: tuple[int, 
     clash = sorted(own & {s.partition("=")[0].strip().replace("-", "_") for s in settings})
     if clash:
         raise ExperimentError(f"experiment {spec.name!r} sets {', '.join(clash)} itself; leave it out of --settings")
+    parts = spec_parts(spec, methods, families)
+    planned = []
+    for part in parts:
+        # a chosen subset runs in the order chosen (a short GPU session runs the methods it names first)
+        keep_methods = tuple(m for m in dict.fromkeys(methods or part.methods) if m in part.methods)
+        keep_families = tuple(f for f in dict.fromkeys(families or part.families) if f in part.families)
+        if not keep_methods or not keep_families:
+            continue
+        grid = Grid(families=keep_families, methods=keep_methods, seeds=seeds, noises=part.noises, scales=(scale,),
+                    settings=part.settings + tuple(settings))
+        planned.append(Part(grid, expand(grid, out_dir, data_root), part.probes))
+    return Plan(spec, scale, seeds, planned, tuple(settings))
+
+
+def spec_parts(spec: Spec, methods: tuple[str, ...] = (), families: tuple[str, ...] = ()) -> tuple:
+    """The spec's parts, with those it makes for a family of its own among `families` (`Spec.for_family`);
+    ExperimentError (one line) for a method or family the experiment does not have."""
     own = [f for f in families if f not in {f for p in spec.parts for f in p.families} and f in family_names()]
     parts = spec.parts + (tuple(p for f in own for p in spec.for_family(get_family(f))) if spec.for_family else ())
     spec_methods = {m for p in spec.parts for m in p.methods}
@@ -75,21 +142,7 @@ def plan_experiment(spec: Spec, scale: str, out_dir: Path, *, seeds: tuple[int, 
                 f" (a family of your own runs in: {', '.join(n for n, s in SPECS.items() if s.for_family)})")
             raise ExperimentError(f"experiment {spec.name!r} has no {kind} {', '.join(map(repr, extra))}; "
                                   f"its {kind} choices: {', '.join(sorted(allowed))}{hint}")
-    grids, cells, probes = [], [], {}
-    for part in parts:
-        # a chosen subset runs in the order chosen (a short GPU session runs the methods it names first)
-        keep_methods = tuple(m for m in dict.fromkeys(methods or part.methods) if m in part.methods)
-        keep_families = tuple(f for f in dict.fromkeys(families or part.families) if f in part.families)
-        if not keep_methods or not keep_families:
-            continue
-        grid = Grid(families=keep_families, methods=keep_methods, seeds=seeds, noises=part.noises, scales=(scale,),
-                    settings=part.settings + tuple(settings))
-        grids.append(grid)
-        for cell in expand(grid, out_dir, data_root):
-            if cell.id not in probes:
-                cells.append(cell)
-            probes[cell.id] = tuple(dict.fromkeys(probes.get(cell.id, ()) + part.probes))
-    return Plan(spec, scale, seeds, grids, cells, probes, tuple(settings))
+    return parts
 
 
 @dataclass
