@@ -6,7 +6,7 @@
 Each checkout trains `--methods` (default bati, csro, dpt) on PointGoal's quick data for `--steps` steps
 (its own code: PYTHONPATH=<checkout>/src), with `bati train` (default) or, `--via run`, with the main job
 (`bati run --methods ...`, wherever each checkout puts its run directories); then metrics.jsonl and eval.jsonl (without wall times),
-eval.json (without wall time, commit and config) and every array of the checkpoints (the earlier one read
+eval.json (without wall time, commit, uncommitted changes and config) and every array of the checkpoints (the earlier one read
 in today's layout, bati.checkpoints) are compared. Prints one line per method; exit 1 if any differs.
 """
 
@@ -49,7 +49,7 @@ def records(run: Path, name: str) -> list[dict]:
 
 def summary(run: Path) -> dict:
     return {k: v for k, v in json.loads((run / "eval.json").read_text()).items()
-            if k not in ("wall_time_s", "commit", "config")}
+            if k not in ("wall_time_s", "commit", "uncommitted_changes", "config")}
 
 
 def arrays(run: Path) -> dict:

@@ -130,8 +130,8 @@ def local(monkeypatch, synthetic_data):
     return data
 
 
-def _statuses(out):
-    return sorted(cell["status"] for cell in json.loads((out / "sweep.json").read_text())["cells"].values())
+def _statuses(out, record="sweep.json"):
+    return sorted(cell["status"] for cell in json.loads((out / record).read_text())["cells"].values())
 
 
 def test_a_sweep_runs_every_cell_then_skips_finished_ones(tmp_path, local, monkeypatch):
@@ -217,6 +217,18 @@ def test_the_reference_returns_are_computed_once_per_collection(tmp_path, local,
 
 
 def test_bati_run_is_a_sweep_plus_the_report_and_a_rerun_trains_nothing(tmp_path, local, monkeypatch, capsys):
+    from bati.experiments import pipeline as pipeline_module
+
+    split = []  # the main experiment keeps each BATI run's likelihood split (here on synthetic data: recorded)
+
+    def save_split(run_dir, length):
+        split.append(run_dir.name)
+        from bati.report.likelihood import SOURCES, TERMS
+
+        terms = {f"{s}_{t}_{k}": 0.0 for s in SOURCES for t in TERMS for k in ("error", "picks_collector")}
+        (run_dir / "likelihood.json").write_text(json.dumps({"step": 10, "context_length": length, **terms}))
+
+    monkeypatch.setattr(pipeline_module, "save_likelihood_split", save_split)
     out = tmp_path / "main"
     args = ["run", "--methods", "bati", "--seeds", "0", "1", "--out-dir", str(out),
             "--settings", *(s for s in TINY if not s.startswith("steps")), "--steps", "10"]
@@ -228,11 +240,12 @@ def test_bati_run_is_a_sweep_plus_the_report_and_a_rerun_trains_nothing(tmp_path
     assert all(row["n_seeds"] == 2 for row in results["rows"]) and results["reading"].startswith("Reading")
     assert results["reading"] in (out / "results.md").read_text()
     assert (out / "report" / "report.md").is_file() and (out / "report" / "runs.csv").is_file()
-    assert _statuses(out) == ["done"] * 2
+    assert _statuses(out, "main.sweep.json") == ["done"] * 2  # the main experiment's cells on PointGoal
+    assert sorted(split) == ["bati-seed0", "bati-seed1"]
 
     real = sweep_module.run_job
     monkeypatch.setattr(sweep_module, "run_job", lambda *a, **k: pytest.fail("a finished run was trained again"))
-    assert main(args) == 0 and _statuses(out) == ["skipped"] * 2
+    assert main(args) == 0 and _statuses(out, "main.sweep.json") == ["skipped"] * 2
 
     other = [a if a != "10" else "15" for a in args]  # another setting into the same directory: its own table
     monkeypatch.setattr(sweep_module, "run_job", real)

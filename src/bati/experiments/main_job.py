@@ -1,11 +1,13 @@
-"""`bati run`: the paper's central result end to end on one family, as a sweep plus the report.
+"""`bati run`: the paper's central result end to end on one family: the `main` experiment on that family,
+with its table and one line reading it.
 
-The main job is a sweep of one grid (one family, its methods and seeds, one scale and eps) into its
-directory, then `bati report` over it (the one report builder: table with rliable intervals, CSVs,
-learning curves) and one line reading the table. Data is collected (or reused) with the shipped
-experts; runs resume if interrupted; a rerun trains only what is missing.
+The main job plans the `main` experiment (bati.experiments.pipeline) on one family with its methods, seeds,
+scale and eps, runs it as every experiment runs (the sweep of its cells, each BATI run's likelihood split),
+then `bati report` over its setting (the report builder: table with rliable intervals, CSVs, learning curves)
+and one line reading the table. Data is collected (or reused) with the shipped experts; runs resume if
+interrupted; a rerun trains only what is missing.
 
-    <out>/sweep.json, <out>/<Family>/<scale>-eps<eps>-<hash>/<method>-seed<s>/   the sweep (bati.experiments.sweep)
+    <out>/main.sweep.json, <out>/<Family>/<scale>-eps<eps>-<hash>/<method>-seed<s>/   the experiment's cells
     <out>/report/                         report.md, CSVs, curves (bati.report.build)
     <out>/results.md, <out>/results.json  the report's table with the reading line; its rows as JSON
 """
@@ -20,9 +22,13 @@ from typing import Annotated
 
 from bati.cli_hints import DEFAULT_IN_DOC
 from bati.config import ScaleName
+from bati.envs import get_family
 from bati.errors import PartialFailure
-from bati.experiments.sweep import Grid, SweepError, expand, sweep_grid
+from bati.experiments.pipeline import Plan, plan_experiment, run_experiment
+from bati.experiments.specs import get_spec, status_file
+from bati.experiments.sweep import SweepError
 from bati.io import atomic_write_json, atomic_write_text, check_directory
+from bati.methods import method_names
 from bati.report import build_report
 from bati.report.tables import METHOD_LABELS
 
@@ -63,35 +69,40 @@ class MainJob:
     settings: tuple[str, ...] = ()
     """KEY=VALUE TrainConfig settings for every run, e.g. `context_length=50 iql.hidden_dims=[64,64]`."""
 
-    def grid(self) -> Grid:
+    def plan(self) -> Plan:
+        """The `main` experiment on the job's family: its cells of the job's methods and seeds (every setting
+        checked, before any data is collected)."""
         if any(item.partition("=")[0].strip().replace("-", "_") in ("steps", "zoo_dir") for item in self.settings):
             raise SweepError("give the steps and the zoo with --steps and --zoo-dir, not as settings")
+        try:
+            methods = tuple(method_names(self.methods))
+        except ValueError as err:
+            raise SweepError(str(err)) from err
         steps = self.steps if self.steps is not None else MAIN_JOB_STEPS.get(self.scale)
         settings = (*([f"steps={steps}"] if steps is not None else []),
-                    *([f"zoo_dir={self.zoo_dir}"] if self.zoo_dir is not None else []), *self.settings)
-        return Grid(families=(self.family,), methods=tuple(self.methods), seeds=tuple(self.seeds),
-                    noises=() if self.noise is None else (self.noise,), scales=(self.scale,), settings=settings)
+                    *([f"zoo_dir={self.zoo_dir}"] if self.zoo_dir is not None else []),
+                    *([f"noise={self.noise}"] if self.noise is not None else []), *self.settings)
+        get_family(self.family)  # an unknown family: its one line, naming the families
+        return plan_experiment(get_spec("main"), self.scale, self.directory(), seeds=self.seeds, settings=settings,
+                               methods=methods, families=(self.family,), data_root=self.data_root)
 
     def directory(self) -> Path:
         return self.out_dir or Path("runs") / "main" / f"{self.family}-{self.scale}"
 
 
 def run_main_job(job: MainJob, show_progress: bool = True) -> dict:
-    """Sweep the job's grid, report it, read the table. Returns {"markdown", "reading", "out_dir",
+    """Run the job's plan, report it, read the table. Returns {"markdown", "reading", "out_dir",
     "report_dir", "wall_time_s", "rows"}; bad settings raise (one line) before any data is collected."""
-    from bati.run_dir import check_seeds
-
     start = time.perf_counter()
-    check_seeds(job.seeds)
     out = job.directory()
     check_directory(out, "the experiment directory")
-    grid = job.grid()
-    cells = expand(grid, out, job.data_root)  # every setting of every run, before the data is collected
-    setting_dir = cells[0].config.out_dir.parent  # the job's runs, apart from other settings swept into `out`
-    result = sweep_grid(grid, out, data_root=job.data_root, workers=job.workers, show_progress=show_progress)
-    if result.errors:
-        raise MainJobFailed(f"{len(result.errors)} run(s) failed: " + "; ".join(result.errors.values()) +
-                            f" (recorded in {out}/sweep.json); rerun the same command to retry them")
+    plan = job.plan()  # every setting of every run, before the data is collected
+    setting_dir = plan.cells[0].config.out_dir.parent  # the job's runs, apart from other settings run into `out`
+    result = run_experiment(plan, out, data_root=job.data_root, workers=job.workers, show_progress=show_progress)
+    failures = {**result.sweep.errors, **result.probe_errors}
+    if failures:
+        raise MainJobFailed(f"{len(failures)} run(s) or likelihood split(s) failed: " + "; ".join(failures.values())
+                            + f" (recorded in {out}/{status_file(plan.spec)}); rerun the same command to retry them")
     report = build_report(setting_dir, out / "report")
     table = report["tables"][0]  # one family, scale, eps and settings: one table
     line = reading(table["rows"], table["settings"].get("steps"), len(job.seeds))
@@ -144,7 +155,7 @@ def reading(rows: list[dict], steps: int | None, n_seeds: int) -> str:
     """One line reading the report's table (`bati.report.build.method_rows`): who holds under p_test
     contexts, who falls, who is best, and, when no BATI is best on p_test, that the paper's effect does not
     show at this budget."""
-    label = lambda row: METHOD_LABELS.get(row["method"], row["method"])  # noqa: E731
+    label = lambda row: METHOD_LABELS.get(row["method"], row["method"])
     parts = []
     for row in rows:
         train, test = row["p_train_normalised_mean"], row["p_test_normalised_mean"]

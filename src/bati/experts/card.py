@@ -15,7 +15,7 @@ import numpy as np
 from bati.envs import get_family
 from bati.envs.rollout import Episodes, rollout
 from bati.experts.kinds import ExpertsKind, family_experts
-from bati.experts.zoo import ZOO_DIR, Expert, load
+from bati.experts.zoo import ZOO_DIR, Expert, load_for
 from bati.io import atomic_write_json, atomic_write_text, check_directory, code_record
 
 HALF_CHEETAH_CONTROL_COST = 0.05
@@ -86,7 +86,7 @@ def write_card(family_name: str, seed: int = 0, zoo_dir: str | Path | None = Non
         raise ValueError(f"{family_name}'s expert is the exact best response, computed, not shipped: it has no "
                          "card; its exact values per hand are bati.envs.kuhn.best_response_value")
     experts = family_experts(family, experts, seed)
-    expert = load(family_name, zoo_dir, experts)
+    expert = load_for(family, zoo_dir, experts)
     directory = Path(zoo_dir or ZOO_DIR) / family_name
     train, test = family.split_tasks(seed)
     if experts == "per-task":
