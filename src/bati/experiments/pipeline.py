@@ -77,8 +77,8 @@ class Plan:
             noise_rank = {}  # a family's eps in the grid's order, then the methods in the order chosen
             for cell in part.cells:
                 noise_rank.setdefault((cell.config.family, cell.config.noise), len(noise_rank))
-            kept = sorted((i, cell) for i, cell in enumerate(part.cells)
-                          if cell.config.method in keep_methods and cell.config.family in keep_families)
+            kept = [(i, cell) for i, cell in enumerate(part.cells)
+                    if cell.config.method in keep_methods and cell.config.family in keep_families]
             kept.sort(key=lambda item: (keep_families.index(item[1].config.family),
                                         noise_rank[item[1].config.family, item[1].config.noise],
                                         keep_methods.index(item[1].config.method), item[0]))
