@@ -68,8 +68,8 @@ class LineGoalEnv(TaskEnvMixin, gym.Env):
 class LineGoalExpert(Expert):
     """Scripted: move toward the goal at full speed; Gaussian exploration (std 0.3) when stochastic."""
 
-    def __init__(self):
-        self.family = LineGoalFamily()
+    def __init__(self, family: LineGoalFamily):
+        self.family = family
         self.meta = {"family": "LineGoal", "kind": "scripted"}
 
     def mean_action(self, obs, task_arrays):

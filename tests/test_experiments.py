@@ -279,8 +279,9 @@ def test_vs_figure_puts_each_column_at_its_number_and_orders_columns_numerically
 def test_returns_by_task_value_average_the_test_tasks_of_each_value():
     from bati.experiments.report import by_task_value_section, returns_by_task_value
 
-    cheetah = configs("experts", "cpu", families=["HalfCheetahDir"], methods=["focal"], seeds=[0])[0]
-    test_tasks = np.array(cheetah.task_split().draw(get_family("HalfCheetahDir"), cheetah.data_seed)[1])
+    cheetah = plan_experiment(get_spec("experts"), "cpu", OUT, families=["HalfCheetahDir"], methods=["focal"],
+                              seeds=[0]).cells[0]
+    test_tasks = np.array(cheetah.config.task_split().draw(get_family("HalfCheetahDir"), cheetah.config.data_seed)[1])
     returns = np.where(test_tasks > 0, 10.0, -4.0)
     returns[np.flatnonzero(test_tasks > 0)[0]] = 30.0  # one right-running task differs: the mean moves
     right = np.flatnonzero(test_tasks > 0)
@@ -290,7 +291,7 @@ def test_returns_by_task_value_average_the_test_tasks_of_each_value():
     assert values == pytest.approx({"by_task_p_train_-1": -4.0, "by_task_p_train_1": expected_right,
                                     "by_task_p_test_-1": 4.0, "by_task_p_test_1": -expected_right})
     assert returns_by_task_value(cheetah, {"p_train_task_returns": [1.0, 2.0]}) == {}  # not one per test task
-    ant = configs("experts", "cpu", families=["AntDir"], methods=["focal"], seeds=[0])[0]
+    ant = plan_experiment(get_spec("experts"), "cpu", OUT, families=["AntDir"], methods=["focal"], seeds=[0]).cells[0]
     assert returns_by_task_value(ant, {"p_train_task_returns": [1.0] * 20}) == {}  # directions: a continuum
 
     spec = get_spec("experts")

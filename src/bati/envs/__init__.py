@@ -76,7 +76,8 @@ def family_names() -> tuple[str, ...]:
     return FAMILY_NAMES + tuple(n for n in _REGISTERED if n not in _FAMILIES)
 
 
-def _check_name(name: str) -> None:
+def check_family_name(name: str) -> None:
+    """TaskError (naming every family) unless a family is called `name`; nothing is imported or built."""
     if name not in _FAMILIES and name not in _REGISTERED:
         _load_plugins()
     if name not in _FAMILIES and name not in _REGISTERED:
@@ -137,7 +138,7 @@ def get_family(name: str) -> TaskFamily:
     """The task family called `name` (one of `family_names()`)."""
     import importlib
 
-    _check_name(name)
+    check_family_name(name)
     if name in _REGISTERED:
         return _REGISTERED[name]()
     module, family_class, _ = _FAMILIES[name]
@@ -221,5 +222,5 @@ _register()
 _quiet_mujoco_deprecation()
 
 __all__ = ["EPISODE_LENGTH", "FAMILY_NAMES", "FamilyRecord", "FamilyUnavailable", "Task", "TaskEnvMixin", "TaskError",
-           "TaskFamily", "TaskSplit", "as_family", "families_with_extras", "family_available", "family_names", "get_family",
-           "make_env", "random_episode", "register_family", "scalar_task"]
+           "TaskFamily", "TaskSplit", "as_family", "check_family_name", "families_with_extras", "family_available",
+           "family_names", "get_family", "make_env", "random_episode", "register_family", "scalar_task"]

@@ -22,7 +22,6 @@ from typing import Annotated
 
 from bati.cli_hints import DEFAULT_IN_DOC
 from bati.config import ScaleName
-from bati.envs import get_family
 from bati.errors import PartialFailure
 from bati.experiments.pipeline import Plan, plan_experiment, run_experiment
 from bati.experiments.specs import get_spec, status_file
@@ -82,7 +81,6 @@ class MainJob:
         settings = (*([f"steps={steps}"] if steps is not None else []),
                     *([f"zoo_dir={self.zoo_dir}"] if self.zoo_dir is not None else []),
                     *([f"noise={self.noise}"] if self.noise is not None else []), *self.settings)
-        get_family(self.family)  # an unknown family: its one line, naming the families
         return plan_experiment(get_spec("main"), self.scale, self.directory(), seeds=self.seeds, settings=settings,
                                methods=methods, families=(self.family,), data_root=self.data_root)
 

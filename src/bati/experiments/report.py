@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bati.config import family_of
 from bati.errors import BatiError
 from bati.experiments.pipeline import Plan
 from bati.experiments.specs import Spec
+from bati.experiments.sweep import Cell
 from bati.experts.kinds import data_label
 from bati.io import atomic_write_text, short_commit
 from bati.report.build import (
@@ -92,7 +92,7 @@ def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
             records.append({**base, "p_test_return": run.p_test_return, "p_train_return": run.p_train_return,
                             "p_test_inference_error": run.p_test_inference_error, **raw.get("diagnostics", {}),
                             **{f"likelihood_{k}": split[k] for k in LIKELIHOOD_COLUMNS if split is not None},
-                            **(returns_by_task_value(c, raw) if plan.spec.by_task_value else {})})
+                            **(returns_by_task_value(cell, raw) if plan.spec.by_task_value else {})})
             continue
         for probe in probes:
             saved = read_probe(c.out_dir, probe)
@@ -189,12 +189,12 @@ MAX_TASK_VALUES = 4
 """A family whose test tasks take at most this many values (HalfCheetahDir: left, right) gets the by-value table."""
 
 
-def returns_by_task_value(config, raw: dict) -> dict:
+def returns_by_task_value(cell: Cell, raw: dict) -> dict:
     """The run's last evaluation, its returns averaged over the test tasks of each task value:
     {"by_task_<p_train|p_test>_<value>": mean}. Empty unless the family's test tasks are a few scalars (the
     tasks are drawn again from the run's split and data seed: runs do not store them)."""
     try:
-        _, test_tasks = config.task_split().draw(family_of(config.family), config.data_seed)
+        _, test_tasks = cell.config.task_split().draw(cell.family, cell.config.data_seed)
         values = np.asarray(test_tasks, float)
     except (ValueError, TypeError, KeyError, BatiError):
         return {}

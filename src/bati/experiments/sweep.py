@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import tyro
 
@@ -38,6 +38,9 @@ from bati.experts.kinds import experts_label
 from bati.io import atomic_write_json, hold_lock
 from bati.config import (NOT_IDENTITY, ScaleName, TrainConfig, apply_settings, differing_settings, digest_view,
                          method_config_key, method_sections, section_readers, settable_names)
+
+if TYPE_CHECKING:
+    from bati.envs import TaskFamily
 
 AXES = ("family", "method", "seed", "scale", "noise")
 """Grid axes; every other TrainConfig field can be set for all cells with `overrides`."""
@@ -98,14 +101,15 @@ class Grid:
 @dataclass(frozen=True)
 class Cell:
     config: TrainConfig  # resolved, out_dir set
+    family: TaskFamily  # the config's family object, looked up once by the grid's expansion
 
     @cached_property  # (a digest costs a config's record; plans and reports ask for it many times)
     def id(self) -> str:
-        return config_digest(self.config, exclude=NOT_IDENTITY)
+        return config_digest(self.config, exclude=NOT_IDENTITY, family=self.family)
 
     @cached_property
     def job_key(self) -> str:
-        return config_digest(self.config, exclude=NOT_IDENTITY + ("seed",))
+        return config_digest(self.config, exclude=NOT_IDENTITY + ("seed",), family=self.family)
 
     @property
     def label(self) -> str:
@@ -113,11 +117,11 @@ class Cell:
         return f"{c.family}/{c.method}/seed{c.seed}"
 
 
-def config_digest(config: TrainConfig, exclude: Iterable[str] = ()) -> str:
+def config_digest(config: TrainConfig, exclude: Iterable[str] = (), family: TaskFamily | None = None) -> str:
     """A short stable digest of a config's settings (JSON with sorted keys). Settings added later count
     only when they differ from their old value, renamed ones under their old names (`digest_view`), so
-    older digests stay valid."""
-    settings = {k: v for k, v in digest_view(config.record()).items() if k not in set(exclude)}
+    older digests stay valid. `family`: the config's family object, where the caller has it."""
+    settings = {k: v for k, v in digest_view(config.record(family)).items() if k not in set(exclude)}
     return hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:10]
 
 
@@ -151,14 +155,14 @@ def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Ce
                             config = apply_settings(TrainConfig(family=family.name, method=method, seed=seed,
                                                                 scale=scale, noise=noise, data_root=data_root),
                                                     own).resolve(family).config
-                            cells.append(Cell(replace(config, out_dir=run_dir(out_dir, config))))
+                            cells.append(Cell(replace(config, out_dir=run_dir(out_dir, config, family)), family))
     except (ValueError, TypeError) as err:  # TaskError is a ValueError
         raise SweepError(str(err)) from err
     return cells
 
 
-def run_dir(out_dir: Path, config: TrainConfig) -> Path:
-    setting = config_digest(config, exclude=NOT_IDENTITY + ("method", "seed"))[:8]
+def run_dir(out_dir: Path, config: TrainConfig, family: TaskFamily | None = None) -> Path:
+    setting = config_digest(config, exclude=NOT_IDENTITY + ("method", "seed"), family=family)[:8]
     return Path(out_dir) / config.family / f"{config.scale}-eps{config.noise:g}-{setting}" / \
         f"{config.method}-seed{config.seed}"
 
@@ -170,7 +174,7 @@ def is_done(cell: Cell) -> bool:
         saved = json.loads(path.read_text()).get("config", {})
     except (OSError, ValueError, AttributeError):
         return False
-    current = cell.config.record()
+    current = cell.config.record(cell.family)
     return isinstance(saved, dict) and not differing_settings(saved, current, [k for k in current if k not in NOT_IDENTITY])
 
 
@@ -241,12 +245,13 @@ def run_job(config: TrainConfig, seeds: tuple[int, ...], runs_dir: Path, referen
             for s in summaries]
 
 
-def collection_key(config: TrainConfig) -> str:
+def collection_key(cell: Cell) -> str:
     """What a run's reference returns depend on: its collection (family, sizes, seed, eps, tasks, root) and
     the expert (zoo); jobs with the same key share them (computed by the first, passed to the others)."""
+    config = cell.config
     return json.dumps([config.family, config.data_scale, config.data_seed, config.noise, str(config.data_root),
                        config.episodes_per_task, config.context_episodes, str(config.task_split()),
-                       str(config.zoo_dir), config.record().get("family_version"), bool(config.datasets)]
+                       str(config.zoo_dir), config.record(cell.family).get("family_version"), bool(config.datasets)]
                       + ([config.experts] if config.experts != "conditioned" else []))
 
 
@@ -255,7 +260,7 @@ def check_experts(cells: list[Cell]) -> None:
     is the zoo's one-line error before anything is written."""
     from bati.data.collect import load_expert
 
-    families = _families(cells)
+    families = {c.config.family: c.family for c in cells}
     for family, zoo_dir, experts in sorted({(c.config.family, c.config.zoo_dir, c.config.experts)
                                             for c in cells if not c.config.datasets}, key=str):
         load_expert(families[family], zoo_dir, experts)
@@ -265,18 +270,11 @@ def prepare_data(cells: list[Cell], progress: bool, check_only: bool = False) ->
     """Collect every collection the cells need once, up front (in parallel over tasks), so that
     workers only read data and never collect the same collection twice. `check_only`: collect nothing,
     raise what collecting would raise before any work (e.g. a collection of other sizes in the data root)."""
-    families = _families(cells)
-    needed = {(c.resolve(families[c.family]).collection, None if c.zoo_dir is None else str(c.zoo_dir))
-              for c in (cell.config for cell in cells) if not c.datasets}
+    needed = {(cell.config.resolve(cell.family).collection,
+               None if cell.config.zoo_dir is None else str(cell.config.zoo_dir))
+              for cell in cells if not cell.config.datasets}
     for collection, zoo_dir in sorted(needed, key=lambda n: (n[0].family.name, str(n))):
         collection.collect(progress, zoo_dir, check_only=check_only)
-
-
-def _families(cells: list[Cell]) -> dict:
-    """The cells' families by name (one lookup each)."""
-    from bati.envs import get_family
-
-    return {name: get_family(name) for name in {c.config.family for c in cells if not c.config.datasets}}
 
 
 # --- the sweep -------------------------------------------------------------------------------
@@ -393,7 +391,7 @@ class _SweepStatus:
 
     def arguments(self, job: Job) -> tuple:
         also = tuple(dict.fromkeys(c.config.method for c in job.alongside))
-        return (job.config, job.seeds, job.config.out_dir.parent, self.references.get(collection_key(job.config)),
+        return (job.config, job.seeds, job.config.out_dir.parent, self.references.get(collection_key(job.cells[0])),
                 also)
 
     def running(self, job: Job) -> None:
@@ -415,7 +413,7 @@ class _SweepStatus:
             else:
                 self.status[cell.id] = "done"
         if summaries and summaries[0].get("reference_returns"):
-            self.references.setdefault(collection_key(job.config), summaries[0]["reference_returns"])
+            self.references.setdefault(collection_key(job.cells[0]), summaries[0]["reference_returns"])
         self.record()
         self.table.refresh()
         self.table.log(job, f"failed ({error})" if error else "done")

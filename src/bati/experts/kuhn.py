@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bati.envs import get_family
+from bati.envs import TaskFamily
 from bati.envs.kuhn import BET, OBS_DIM, best_response, decision_parts
 from bati.experts.base import Expert
 
@@ -37,10 +37,10 @@ def best_response_actions(obs, task_arrays, xp=np):
 class BestResponseExpert(Expert):
     """KuhnPoker's expert: the exact best response to the opponent it is conditioned on."""
 
-    def __init__(self, family_name: str = "KuhnPoker", exploration: float = EXPLORATION):
-        self.family = get_family(family_name)
+    def __init__(self, family: TaskFamily, exploration: float = EXPLORATION):
+        self.family = family
         self.exploration = float(exploration)
-        self.meta = {"family": family_name, "kind": "best response (exact, by enumeration)", "obs_dim": OBS_DIM,
+        self.meta = {"family": family.name, "kind": "best response (exact, by enumeration)", "obs_dim": OBS_DIM,
                      "action_dim": 2, "task_dim": self.family.task_dim, "hidden_dims": [], "train_steps": 0,
                      "train_wall_time_s": 0.0, "seed": None, "exploration": self.exploration}
 

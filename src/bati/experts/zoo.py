@@ -11,7 +11,7 @@ import flax
 import jax
 import numpy as np
 
-from bati.envs import TaskFamily, get_family
+from bati.envs import TaskFamily, check_family_name, get_family
 from bati.experts.base import Expert
 from bati.experts.kinds import EXPERT_KINDS, ExpertsKind, check_kind, family_experts  # noqa: F401 (the zoo's names)
 from bati.io import atomic_write_bytes, atomic_write_json
@@ -44,20 +44,21 @@ def save_expert(directory: Path, family_name: str, actor_params: Any, meta: dict
     atomic_write_json(directory / "expert.json", {"family": family_name, **meta})
 
 
-def _kuhn_best_responses() -> Expert:
+def _kuhn_best_responses(family: TaskFamily) -> Expert:
     from bati.experts.kuhn import BestResponseExpert
 
-    return BestResponseExpert("KuhnPoker")
+    return BestResponseExpert(family)
 
 
-# Families whose expert is computed or scripted rather than a trained SAC: name -> factory.
-_EXPERT_FACTORIES: dict[str, Callable[[], Expert]] = {"KuhnPoker": _kuhn_best_responses}
+# Families whose expert is computed or scripted rather than a trained SAC: name -> factory(family).
+_EXPERT_FACTORIES: dict[str, Callable[[TaskFamily], Expert]] = {"KuhnPoker": _kuhn_best_responses}
 
 
-def register_expert(family_name: str, factory: Callable[[], Expert]) -> None:
-    """Give a family an expert that is not a trained SAC (a scripted or exact policy): `factory()` returns
-    an `Expert`. `load(family_name)` then returns it instead of looking in the zoo (docs/extending.md)."""
-    get_family(family_name)  # unknown family -> TaskError
+def register_expert(family_name: str, factory: Callable[[TaskFamily], Expert]) -> None:
+    """Give a family an expert that is not a trained SAC (a scripted or exact policy): `factory(family)`
+    returns an `Expert` of the family object it is given. `load(family_name)` then returns it instead of
+    looking in the zoo (docs/extending.md)."""
+    check_family_name(family_name)
     _EXPERT_FACTORIES[family_name] = factory
 
 
@@ -85,7 +86,7 @@ def load_for(family: TaskFamily, zoo_dir: str | Path | None = None, kind: Expert
             raise ValueError(f"{family_name}'s expert is computed or scripted, not trained per task: use --experts conditioned")
         return load_per_task(family, directory / PER_TASK_DIR)
     if family_name in _EXPERT_FACTORIES:  # computed or scripted: nothing to load
-        return _EXPERT_FACTORIES[family_name]()
+        return _EXPERT_FACTORIES[family_name](family)
     if not meta_path.exists():
         raise FileNotFoundError(
             f"no expert for {family_name} in {directory}; `bati experts train --family {family_name}` trains one "
