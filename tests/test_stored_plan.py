@@ -58,6 +58,29 @@ def test_a_cell_result_is_its_eval_json_none_while_unfinished_and_a_damaged_one_
     assert cell.result().p_test_return == 1.5
 
 
+def test_a_finished_cell_reads_its_run_probes_and_likelihood_split_in_one_place(tmp_path):
+    from bati.report.likelihood import LIKELIHOOD_FILE, SOURCES, TERMS
+    from bati.report.probes import probe_path
+
+    cell = _plan(tmp_path).cells[0]
+    assert cell.read() is None  # not finished
+    cell.run_dir.mkdir(parents=True)
+    (cell.run_dir / "eval.json").write_text(json.dumps({"family": "AntDir", "method": "bati", "seed": 0,
+                                                        "p_test_return": 1.5, "p_train_return": 2.0,
+                                                        "diagnostics": {"state_weight": 0.25}}))
+    finished = cell.read()
+    assert (finished.run.p_test_return, finished.run.diagnostics) == (1.5, {"state_weight": 0.25})
+    assert finished.probes == () and finished.likelihood_split is None  # none saved yet
+    probe = cell.probes[0]
+    saved = {"probe": {"eval_context_length": 50}, "p_test_return": 0.5, "context_length": 50}
+    probe_path(cell.run_dir, probe).parent.mkdir()
+    probe_path(cell.run_dir, probe).write_text(json.dumps(saved))
+    split = {f"{s}_{t}_{k}": 0.1 for s in SOURCES for t in TERMS for k in ("error", "picks_collector")}
+    (cell.run_dir / LIKELIHOOD_FILE).write_text(json.dumps(split))
+    finished = cell.read()
+    assert finished.probes == ((probe, saved),) and finished.likelihood_split == split
+
+
 def test_the_report_stores_the_plan_its_tables_cover(tmp_path):
     from bati.experiments.pipeline import plan_experiment
     from bati.experiments.report import experiment_report

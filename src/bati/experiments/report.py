@@ -14,10 +14,8 @@ left in `<out>`, e.g. of families this run did not select, are removed so none i
 
 from __future__ import annotations
 
-import json
 import math
 import re
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -38,9 +36,9 @@ from bati.report.build import (
 )
 from bati.report.build import table_markdown as group_table
 from bati.report.curves import save_figure
-from bati.report.likelihood import SOURCES, read_likelihood_split
+from bati.report.likelihood import SOURCES
 from bati.report.probes import probe_path, read_probe
-from bati.report.runs import ReportWarning, RunResult, jobs_wall_time
+from bati.report.runs import RunResult, jobs_wall_time
 from bati.report.stored_plan import PLAN_FILE
 from bati.report.tables import METHOD_LABELS, csv_text
 
@@ -68,17 +66,11 @@ def curve_records(setting: str, run: RunResult) -> list[dict]:
 def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
     """One record per finished cell (or per finished probe of a cell), and the finished runs."""
     records, runs = [], []
-    for cell in plan.cells:
-        c = cell.config
-        path = c.out_dir / "eval.json"
-        if not path.is_file():  # not finished (yet)
+    for cell, planned in zip(plan.cells, plan.stored().cells):
+        finished = planned.read()
+        if finished is None:  # not finished (yet), or damaged (said, never dropped silently)
             continue
-        try:
-            raw = json.loads(path.read_text())
-            run = RunResult.from_dict(raw, path)
-        except (OSError, ValueError, TypeError, AttributeError) as err:  # damaged: said, never dropped silently
-            warnings.warn(f"skipping {path}: {err}", ReportWarning, stacklevel=2)
-            continue
+        c, run = cell.config, finished.run
         runs.append(run)
         base = {"method": c.method, "family": c.family, "seed": c.seed, "noise": f"{c.noise:g}",
                 "family_noise": f"{c.family} eps={c.noise:g}", "split": f"{c.n_train_tasks}/{c.n_test_tasks}",
@@ -86,18 +78,15 @@ def cell_records(plan: Plan) -> tuple[list[dict], list[RunResult]]:
                 "task_range": _task_range(c), "probe": "run", "family_probe": f"{c.family} run",
                 "family_experts": f"{c.family} {c.experts}", "wall_time_s": run.wall_time_s,
                 "experts_return": (run.reference_returns or {}).get("expert")}
-        probes = plan.probes.get(cell.id, ())
-        if not probes:
-            split = read_likelihood_split(c.out_dir) if plan.spec.likelihood_split else None
+        if not planned.probes:
+            split = finished.likelihood_split if plan.spec.likelihood_split else None
+            task_returns = {f"{source}_task_returns": getattr(run, f"{source}_task_returns") for source in SOURCES}
             records.append({**base, "p_test_return": run.p_test_return, "p_train_return": run.p_train_return,
-                            "p_test_inference_error": run.p_test_inference_error, **raw.get("diagnostics", {}),
+                            "p_test_inference_error": run.p_test_inference_error, **run.diagnostics,
                             **{f"likelihood_{k}": split[k] for k in LIKELIHOOD_COLUMNS if split is not None},
-                            **(returns_by_task_value(cell, raw) if plan.spec.by_task_value else {})})
+                            **(returns_by_task_value(cell, task_returns) if plan.spec.by_task_value else {})})
             continue
-        for probe in probes:
-            saved = read_probe(c.out_dir, probe)
-            if saved is None:
-                continue
+        for probe, saved in finished.probes:
             kept = ("_return", "_inference_error", "_auroc", "_flagged")
             records.append({**base, **{k: v for k, v in saved.items() if k.endswith(kept)},
                             "context_length": str(saved["context_length"]),
@@ -189,8 +178,9 @@ MAX_TASK_VALUES = 4
 """A family whose test tasks take at most this many values (HalfCheetahDir: left, right) gets the by-value table."""
 
 
-def returns_by_task_value(cell: Cell, raw: dict) -> dict:
-    """The run's last evaluation, its returns averaged over the test tasks of each task value:
+def returns_by_task_value(cell: Cell, task_returns: dict) -> dict:
+    """The run's last evaluation (`task_returns`: its `<source>_task_returns`), its returns averaged over the test
+    tasks of each task value:
     {"by_task_<p_train|p_test>_<value>": mean}. Empty unless the family's test tasks are a few scalars (the
     tasks are drawn again from the run's split and data seed: runs do not store them)."""
     try:
@@ -202,7 +192,7 @@ def returns_by_task_value(cell: Cell, raw: dict) -> dict:
         return {}
     out = {}
     for source in SOURCES:
-        returns = np.asarray(raw.get(f"{source}_task_returns") or [], float)
+        returns = np.asarray(task_returns.get(f"{source}_task_returns") or [], float)
         if returns.shape != values.shape:
             continue
         out.update({f"by_task_{source}_{value:g}": float(returns[values == value].mean())

@@ -10,7 +10,6 @@ from pathlib import Path
 from bati.experts.kinds import CONDITIONED_SETTING as CONDITIONED
 from bati.experts.kinds import data_label
 from bati.report.convergence import run_drift
-from bati.report.probes import read_probe
 from bati.report.stored_plan import PLAN_FILE, StoredPlan, read_plan
 
 __all__ = ["CONDITIONED_DATA", "SOURCES", "Record", "Source", "gather", "source_plan"]
@@ -127,17 +126,17 @@ def gather(spec_name: str, source: Source, root: Path) -> list[Record]:
     for cell in plan.cells if plan is not None else ():
         if source.experts and cell.experts != source.experts:
             continue
-        run = cell.result()
-        if run is None:
+        finished = cell.read()
+        if finished is None:
             continue
+        run = finished.run
         score = run.normalised if run.reference_returns else _raw
         training = (run.total_wall_time(), f"{cell.run_dir.parent}/{cell.method}")
         results = [(run.p_test_return, run.p_train_return, cell.eval_context_length, run.commit, *training)]
         if cell.probes:
             results = [(p["p_test_return"], p["p_train_return"], p["context_length"], p.get("commit"),
                         p.get("wall_time_s"), f"{cell.run_dir}/{p['context_length']}")
-                       for p in (read_probe(cell.run_dir, probe) for probe in cell.probes)
-                       if p is not None and "p_test_return" in p]
+                       for _, p in finished.probes if "p_test_return" in p]
             if results:  # the first probe's record carries the run's training (its own seconds are ~1% of it)
                 results[0] = (*results[0][:4], *training)
         drift = run_drift(run)  # a probe evaluates its cell's training run: the cell's drift

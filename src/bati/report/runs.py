@@ -75,6 +75,8 @@ class RunResult:
     wall_time_s: float | None = None
     held_out: dict[str, float] = field(default_factory=dict)
     """A run on your own datasets: its HELD_OUT_KEYS (no p_train / p_test returns, which are NaN)."""
+    diagnostics: dict[str, float] = field(default_factory=dict)
+    """A method's own numbers, averaged like the returns (e.g. BATI-auto's calibrated state weight)."""
 
     @property
     def own_data(self) -> bool:
@@ -124,6 +126,7 @@ class RunResult:
             uncommitted_changes=bool(raw.get("uncommitted_changes")) or "-dirty" in str(raw.get("commit")),
             wall_time_s=None if raw.get("wall_time_s") is None else _float(raw["wall_time_s"]),
             held_out={k: float(v) for k, v in held_out.items()},
+            diagnostics=dict(raw["diagnostics"]) if isinstance(raw.get("diagnostics"), dict) else {},
         )
 
     @property

@@ -18,7 +18,8 @@ from pathlib import Path
 
 from bati.errors import BatiError
 from bati.io import atomic_write_text
-from bati.report.probes import Probe
+from bati.report.likelihood import read_likelihood_split
+from bati.report.probes import Probe, read_probe
 from bati.report.runs import ReportWarning, RunResult
 
 PLAN_FILE = "plan.json"
@@ -56,6 +57,27 @@ class PlannedCell:
         except (OSError, ValueError, TypeError, AttributeError) as err:
             warnings.warn(f"skipping {path}: {err}", ReportWarning, stacklevel=2)
             return None
+
+    def read(self) -> FinishedCell | None:
+        """What the cell's run folder holds once the run finished (None before): the one reader of a plan's
+        run folders, for the experiment report and `bati claims` alike."""
+        run = self.result()
+        if run is None:
+            return None
+        probes = tuple((probe, saved) for probe in self.probes
+                       if (saved := read_probe(self.run_dir, probe)) is not None)
+        return FinishedCell(self, run, probes, read_likelihood_split(self.run_dir))
+
+
+@dataclass(frozen=True)
+class FinishedCell:
+    """A finished cell's records: its run's eval.json, the probes saved so far and the likelihood split (if any)."""
+
+    cell: PlannedCell
+    run: RunResult
+    probes: tuple[tuple[Probe, dict], ...]
+    """(probe, its saved result) for each of the cell's probes on disk, in the plan's order."""
+    likelihood_split: dict | None
 
 
 @dataclass(frozen=True)
