@@ -342,6 +342,30 @@ def test_a_damaged_eval_json_is_skipped_by_name_and_never_wins_over_a_valid_dupl
         assert run.path == valid / "eval.json"
 
 
+def test_a_runs_test_time_rules_read_as_runs_of_their_own_with_the_runs_shared_records(tmp_path):
+    from bati.report.runs import ReportWarning, load_runs
+    from bati.report.stored_plan import PlannedCell
+
+    run_dir = write_run(tmp_path, "PointGoal", "bati", 0, -280.0, -300.0, 0.2, 0.3)
+    summary = json.loads((run_dir / "eval.json").read_text())
+    rule = {"p_test_return": -250.0, "p_train_return": -240.0, "p_test_inference_error": 0.1,
+            "p_train_inference_error": 0.05, "p_test_task_returns": [-250.0] * 3, "p_train_task_returns": [-240.0] * 3,
+            "evaluations_averaged": 5, "curve": [{"step": 3000, "p_test_return": -250.0}], "wall_time_s": 1.5}
+    (run_dir / "eval.json").write_text(json.dumps({**summary, "rules": {"bati-r": rule}}))
+    bati, bati_r = load_runs(tmp_path)
+    assert (bati.method, bati.p_test_return, bati.wall_time_s) == ("bati", -300.0, 12.5)
+    assert (bati_r.method, bati_r.p_test_return, bati_r.p_train_inference_error) == ("bati-r", -250.0, 0.05)
+    assert (bati_r.curve, bati_r.wall_time_s) == (rule["curve"], 1.5)  # its own evaluations and their seconds
+    assert (bati_r.reference_returns, bati_r.commit, bati_r.seed) == (bati.reference_returns, "abc1234", 0)  # shared
+    assert bati_r.config["method"] == "bati-r" and bati_r.settings_key() == bati.settings_key()  # one table
+    cell = lambda method: PlannedCell("id", "label", "PointGoal", method, 0, 1.0, 200, "conditioned", run_dir)  # noqa: E731
+    assert cell("bati-r").result().p_test_return == -250.0 and cell("bati").result().p_test_return == -300.0
+    assert cell("bati-auto").result() is None  # the run did not evaluate it: not finished, nothing said
+    (run_dir / "eval.json").write_text(json.dumps({**summary, "rules": {"bati-r": {**rule, "p_test_return": None}}}))
+    with pytest.warns(ReportWarning, match="p_test_return is None"):
+        assert load_runs(tmp_path) == []  # a damaged rule: the file is named and skipped, as any damage
+
+
 def test_a_full_disk_names_the_report_directory_and_keeps_the_previous_report(results, tmp_path, monkeypatch, capsys):
     import errno
     import os

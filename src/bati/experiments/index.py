@@ -20,7 +20,6 @@ diff shows what moved); `pack_results` packs finished runs' metrics.jsonl (bati.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import warnings
@@ -34,7 +33,7 @@ from bati.experiments.specs import MAIN_METHODS, SCALES, SPECS, get_spec
 from bati.experts.kinds import CONDITIONED_SETTING as CONDITIONED
 from bati.experts.kinds import data_label
 from bati.io import atomic_write_text, pack_jsonl, short_commit
-from bati.report.runs import ReportWarning, RunResult, find_eval_files, jobs_wall_time
+from bati.report.runs import ReportWarning, RunResult, find_eval_files, jobs_wall_time, read_results
 from bati.report.stored_plan import StoredPlan, read_plan
 
 RESULTS = Path("results")
@@ -240,11 +239,12 @@ def summarise(study: Study, root: Path = Path(".")) -> Summary:
 
 
 def _read_runs(directory: Path) -> list[RunResult]:
-    """Every eval.json under `directory` as a RunResult; a damaged one is named (ReportWarning), not dropped silently."""
+    """The results of every eval.json under `directory` (`read_results`); a damaged one is named (ReportWarning), not
+    dropped silently."""
     runs = []
     for path in find_eval_files(directory):
         try:
-            runs.append(RunResult.from_dict(json.loads(path.read_text()), path))
+            runs += read_results(path)
         except (OSError, ValueError, TypeError, AttributeError) as err:
             warnings.warn(f"skipping {path}: {err}", ReportWarning, stacklevel=2)
     return runs

@@ -19,6 +19,11 @@ REQUIRED_KEYS = ("family", "method", "seed", "p_test_return", "p_train_return")
 # A run on your own datasets (family "own") has no p_train / p_test returns but these held-out metrics
 # (evaluate.OfflineEvaluator); it needs the first of them instead of the returns.
 HELD_OUT_KEYS = ("held_out_inference_accuracy", "held_out_representation_loss", "held_out_return")
+# A run that evaluated test-time rules beside its own inference (bati-r and bati-auto in a bati run) holds each
+# rule's evaluations under eval.json's "rules" (rule -> these keys); the rest of the file is shared.
+RULE_KEYS = ("p_test_return", "p_train_return", "p_test_inference_error", "p_train_inference_error",
+             "p_test_task_returns", "p_train_task_returns", "evaluations_averaged", "curve", "diagnostics",
+             "wall_time_s")
 
 
 def _comparable(config: dict) -> dict:
@@ -83,7 +88,11 @@ class RunResult:
         return bool(self.held_out)
 
     @classmethod
-    def from_dict(cls, raw: dict, path: Path) -> RunResult:
+    def from_dict(cls, raw: dict, path: Path, rule: str | None = None) -> RunResult:
+        """The run's own results in its eval.json `raw`, or with `rule` those of a test-time rule it evaluated
+        (ValueError where it holds none of it)."""
+        if rule is not None and rule != raw.get("method"):
+            raw = rule_view(raw, rule)
         own_data = "p_test_return" not in raw and HELD_OUT_KEYS[0] in raw
         required = REQUIRED_KEYS[:3] + (HELD_OUT_KEYS[:1] if own_data else REQUIRED_KEYS[3:])
         missing = [k for k in required if k not in raw]
@@ -167,6 +176,31 @@ class RunResult:
         return (value - low) / (high - low)
 
 
+def rules_in(raw: dict) -> tuple[str, ...]:
+    """The test-time rules whose evaluations an eval.json holds beside the run's own (none: ())."""
+    rules = raw.get("rules")
+    return tuple(rules) if isinstance(rules, dict) else ()
+
+
+def rule_view(raw: dict, rule: str) -> dict:
+    """An eval.json as the rule's own: its RULE_KEYS from `rules[rule]`, its method (in the config too) the rule."""
+    entry = raw.get("rules", {}).get(rule) if isinstance(raw.get("rules"), dict) else None
+    if not isinstance(entry, dict):
+        raise ValueError(f"it holds no evaluations of the test-time rule {rule!r}")
+    shared = {k: v for k, v in raw.items() if k not in RULE_KEYS and k != "rules"}
+    config = raw.get("config")
+    return {**shared, **{k: entry[k] for k in RULE_KEYS if k in entry}, "method": rule,
+            **({"config": {**config, "method": rule}} if isinstance(config, dict) else {})}
+
+
+def read_results(path: Path) -> list[RunResult]:
+    """The results in one eval.json: the run's own, then each test-time rule's it evaluated (`rules`)."""
+    raw = json.loads(Path(path).read_text())
+    if not isinstance(raw, dict):
+        raise ValueError("not a JSON object")
+    return [RunResult.from_dict(raw, path)] + [RunResult.from_dict(raw, path, rule) for rule in rules_in(raw)]
+
+
 def _flatten(config: dict, prefix: str = "") -> dict:
     """Nested config dicts as dotted keys (e.g. iql.expectile); lists become tuples' JSON text."""
     flat = {}
@@ -203,7 +237,8 @@ def find_eval_files(directory: Path) -> list[Path]:
 
 
 def load_runs(directory: Path) -> list[RunResult]:
-    """All readable `eval.json` files under `directory` (recursively), sorted by path.
+    """The results of every readable `eval.json` under `directory` (recursively), sorted by path: each run's own,
+    then its test-time rules' (`read_results`).
 
     A file that cannot be read or parsed, or lacks a required key, is skipped with a ReportWarning
     naming it. So is a second run with the same settings, method and seed (the first path is kept).
@@ -211,18 +246,16 @@ def load_runs(directory: Path) -> list[RunResult]:
     runs, seen = [], {}
     for path in find_eval_files(directory):
         try:
-            raw = json.loads(path.read_text())
-            if not isinstance(raw, dict):
-                raise ValueError("not a JSON object")
-            run = RunResult.from_dict(raw, path)
+            found = read_results(path)
         except (OSError, ValueError, TypeError, AttributeError) as err:
             warnings.warn(f"skipping {path}: {err}", ReportWarning, stacklevel=2)
             continue
-        key = (run.settings_key(), run.method, run.seed)
-        if key in seen:
-            warnings.warn(f"skipping {path}: same settings, method and seed as {seen[key]}", ReportWarning,
-                          stacklevel=2)
-            continue
-        seen[key] = path
-        runs.append(run)
+        for run in found:
+            key = (run.settings_key(), run.method, run.seed)
+            if key in seen:
+                warnings.warn(f"skipping {path}{'' if run is found[0] else f' ({run.method})'}: same settings, "
+                              f"method and seed as {seen[key]}", ReportWarning, stacklevel=2)
+                continue
+            seen[key] = path
+            runs.append(run)
     return runs

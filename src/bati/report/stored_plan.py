@@ -20,7 +20,7 @@ from bati.errors import BatiError
 from bati.io import atomic_write_text
 from bati.report.likelihood import read_likelihood_split
 from bati.report.probes import Probe, read_probe
-from bati.report.runs import ReportWarning, RunResult
+from bati.report.runs import ReportWarning, RunResult, rules_in
 
 PLAN_FILE = "plan.json"
 PLAN_FORMAT = 1
@@ -48,12 +48,17 @@ class PlannedCell:
     probes: tuple[Probe, ...] = ()
 
     def result(self) -> RunResult | None:
-        """The run's eval.json, None while it is missing (not finished) or damaged (said: ReportWarning)."""
+        """The cell's results in its run's eval.json (a test-time rule's where the run evaluated the cell's method as
+        one: `rules`); None while it is missing (not finished) or holds no results of the method, or is damaged
+        (said: ReportWarning)."""
         path = self.run_dir / "eval.json"
         if not path.is_file():
             return None
         try:
-            return RunResult.from_dict(json.loads(path.read_text()), path)
+            raw = json.loads(path.read_text())
+            if isinstance(raw, dict) and raw.get("method") != self.method and self.method not in rules_in(raw):
+                return None  # the run did not evaluate this method
+            return RunResult.from_dict(raw, path, self.method)
         except (OSError, ValueError, TypeError, AttributeError) as err:
             warnings.warn(f"skipping {path}: {err}", ReportWarning, stacklevel=2)
             return None
