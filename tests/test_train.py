@@ -482,25 +482,29 @@ def _evals(out):
     return [json.loads(line) for line in (out / "eval.jsonl").read_text().splitlines()]
 
 
-def test_methods_evaluated_alongside_get_the_runs_they_would_have_trained_alone(tmp_path, point_data):
-    # bati-r and bati-auto train exactly as bati: evaluated alongside its run, each gets its own run directory
-    # with the numbers of a run trained alone (same states, same evaluation keys), for a tenth of the cost
+def _rule_evals(out, rule):
+    return [{"step": e["step"], **e["rules"][rule]} for e in _evals(out)]
+
+
+def test_test_time_rules_give_the_numbers_of_runs_trained_alone_in_one_run(tmp_path, point_data):
+    # bati-r and bati-auto train exactly as bati: evaluated as rules of its run (one training, one directory), each
+    # rule's evaluations are those of a run of it trained alone (same states, same evaluation keys)
     runs = tmp_path / "runs"
     together = train_seeds(_config(tmp_path, "unused"), (0,), show_progress=False, runs_dir=runs,
-                           also=("bati-r", "bati-auto"))
-    for method in ("bati-r", "bati-auto"):
-        alone = train(_config(tmp_path / "alone", f"{method}-seed0", method=method), show_progress=False)
-        out = runs / f"{method}-seed0"
-        assert _evals(out) == _evals(tmp_path / "alone" / f"{method}-seed0")
-        assert (out / "metrics.jsonl").read_text() == (runs / "bati-seed0" / "metrics.jsonl").read_text()
-        assert (out / "checkpoint.msgpack").read_bytes() == (tmp_path / "alone" / f"{method}-seed0" /
-                                                             "checkpoint.msgpack").read_bytes()
-        saved = json.loads((out / "eval.json").read_text())
-        assert saved["trained_with"] == "bati-seed0"
-        assert {**saved["config"], "out_dir": None} == {**alone["config"], "out_dir": None}
-        assert saved["p_test_return"] == alone["p_test_return"] and saved["method"] == method
-    assert "state_weight" in _evals(runs / "bati-auto-seed0")[-1]  # BATI-auto calibrated, as alone
-    assert together[0]["method"] == "bati"
+                           rules=("bati-r", "bati-auto"))
+    assert sorted(p.name for p in runs.iterdir()) == ["bati-seed0"]  # no folder of a rule's own
+    saved = json.loads((runs / "bati-seed0" / "eval.json").read_text())
+    for rule in ("bati-r", "bati-auto"):
+        alone = train(_config(tmp_path / "alone", f"{rule}-seed0", method=rule), show_progress=False)
+        assert _rule_evals(runs / "bati-seed0", rule) == _evals(tmp_path / "alone" / f"{rule}-seed0")
+        entry = saved["rules"][rule]
+        assert entry["p_test_return"] == alone["p_test_return"] and entry["curve"] == alone["curve"]
+        assert entry["wall_time_s"] > 0
+    assert "state_weight" in saved["rules"]["bati-auto"]["diagnostics"]  # BATI-auto calibrated, as alone
+    assert together[0]["method"] == "bati" and "rules" not in together[0]
+    plain = train(_config(tmp_path / "plain", "bati-seed0"), show_progress=False)
+    assert {k: v for k, v in saved.items() if k not in ("rules", "wall_time_s", "config")} == \
+        {k: v for k, v in plain.items() if k not in ("wall_time_s", "config")}  # the run's own numbers unchanged
 
 
 def _without_wall_time(path):
@@ -508,13 +512,13 @@ def _without_wall_time(path):
 
 
 def test_evaluating_beside_training_gives_the_files_of_evaluating_in_turn(tmp_path, point_data):
-    # two seeds in one program, bati-r evaluated alongside, evaluations (every 5 steps) without and with a
+    # two seeds in one program, bati-r as a rule, evaluations (every 5 steps) without and with a
     # checkpoint (every 10): the thread changes when the records are written, not what they say
     settings = dict(steps=20, eval_every=5, checkpoint_every=10)
     for name, beside in (("in-turn", False), ("beside", True)):
         train_seeds(_config(tmp_path, "unused", eval_beside_training=beside, **settings), (0, 1), show_progress=False,
-                    runs_dir=tmp_path / name, also=("bati-r",))
-    for run in ("bati-seed0", "bati-seed1", "bati-r-seed0", "bati-r-seed1"):
+                    runs_dir=tmp_path / name, rules=("bati-r",))
+    for run in ("bati-seed0", "bati-seed1"):
         a, b = tmp_path / "in-turn" / run, tmp_path / "beside" / run
         assert [e["step"] for e in _evals(b)] == [5, 10, 15, 20]
         assert _evals(a) == _evals(b), run
@@ -570,47 +574,45 @@ def test_a_checkpoint_waits_for_the_evaluation_of_its_step_beside_training(tmp_p
     assert (resumed / "checkpoint.msgpack").read_bytes() == (tmp_path / "straight" / "checkpoint.msgpack").read_bytes()
 
 
-def test_a_method_evaluated_alongside_follows_a_resumed_run_and_one_of_its_own_is_left_alone(tmp_path, point_data,
-                                                                                             monkeypatch):
+def test_a_rule_follows_a_resumed_run_and_one_asked_for_after_the_run_began_is_refused(tmp_path, point_data,
+                                                                                    monkeypatch):
     runs = tmp_path / "runs"
     with monkeypatch.context() as patch:
         _killed_at_second_checkpoint(patch)  # stops with a step-10 checkpoint and step-20 logs
         with pytest.raises(KeyboardInterrupt):
-            train_seeds(_config(tmp_path, "unused"), (0,), show_progress=False, runs_dir=runs, also=("bati-r",))
-    assert [e["step"] for e in _evals(runs / "bati-r-seed0")] == [10, 20]
-    train_seeds(_config(tmp_path, "unused"), (0,), show_progress=False, runs_dir=runs, also=("bati-r",))
+            train_seeds(_config(tmp_path, "unused"), (0,), show_progress=False, runs_dir=runs, rules=("bati-r",))
+    assert [e["step"] for e in _evals(runs / "bati-seed0")] == [10, 20]
+    train_seeds(_config(tmp_path, "unused"), (0,), show_progress=False, runs_dir=runs, rules=("bati-r",))
     alone = tmp_path / "alone" / "bati-r-seed0"
     train(_config(tmp_path / "alone", "bati-r-seed0", method="bati-r"), show_progress=False)
-    assert _evals(runs / "bati-r-seed0") == _evals(alone)  # the step-20 evaluation redone once, from step 10
-    # a run of its own (here: finished) is not touched by a later run evaluated alongside
-    before = (alone / "eval.json").read_bytes()
-    train_seeds(_config(tmp_path, "unused"), (0,), show_progress=False, runs_dir=tmp_path / "alone", also=("bati-r",))
-    assert (alone / "eval.json").read_bytes() == before
+    assert _rule_evals(runs / "bati-seed0", "bati-r") == _evals(alone)  # step 20's evaluation redone once, from 10
+    before = (runs / "bati-seed0" / "eval.json").read_bytes()
+    with pytest.raises(ValueError, match="has evaluations without bati-auto .*train bati-auto on its own"):
+        train_seeds(_config(tmp_path, "unused"), (0,), show_progress=False, runs_dir=runs, rules=("bati-auto",))
+    assert (runs / "bati-seed0" / "eval.json").read_bytes() == before  # nothing written
 
 
-@pytest.mark.parametrize("also, message", [
-    (("focal",), "'focal' does not train exactly as 'bati'"),
-    (("bati",), "'bati' does not train exactly as 'bati'"),
-    (("bogus",), "unknown method 'bogus'"),
+@pytest.mark.parametrize("rules, message", [
+    (("focal",), "'focal' is not a test-time rule of a 'bati' run"),
+    (("bati",), "'bati' is not a test-time rule of a 'bati' run"),
+    (("bogus",), "unknown test-time rule 'bogus'"),
 ])
-def test_methods_that_train_otherwise_cannot_be_evaluated_alongside(tmp_path, also, message):
+def test_methods_that_train_otherwise_are_not_test_time_rules(tmp_path, rules, message):
     with pytest.raises(ValueError, match=message):
-        train_seeds(_config(tmp_path, "x"), (0,), show_progress=False, runs_dir=tmp_path / "r", also=also)
+        train_seeds(_config(tmp_path, "x"), (0,), show_progress=False, runs_dir=tmp_path / "r", rules=rules)
     assert not (tmp_path / "r").exists()
-    with pytest.raises(ValueError, match="named <method>-seed<seed>"):
-        train_seeds(_config(tmp_path, "x"), (0,), show_progress=False, also=("bati-r",))
 
 
 def test_the_first_evaluation_prepared_beside_training_gives_the_same_numbers(tmp_path, point_data, monkeypatch):
     # Evaluator.warm_up compiles the evaluation and starts its envs in a thread while the first chunks train
     warm = train_seeds(_config(tmp_path, "unused"), (0, 1), show_progress=False, runs_dir=tmp_path / "warm",
-                       also=("bati-r",))
+                       rules=("bati-r",))
     skipped = []
     monkeypatch.setattr(Evaluator, "warm_up", lambda self, *args: skipped.append(type(self).__name__))
     cold = train_seeds(_config(tmp_path, "unused"), (0, 1), show_progress=False, runs_dir=tmp_path / "cold",
-                       also=("bati-r",))
+                       rules=("bati-r",))
     assert skipped == ["Evaluator", "Evaluator"]  # the run's evaluator and bati-r's, once each
-    for name in ("bati-seed0", "bati-seed1", "bati-r-seed0", "bati-r-seed1"):
+    for name in ("bati-seed0", "bati-seed1"):
         assert _evals(tmp_path / "warm" / name) == _evals(tmp_path / "cold" / name)
     assert [r["p_test_return"] for r in warm] == [r["p_test_return"] for r in cold]
 

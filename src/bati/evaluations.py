@@ -1,8 +1,8 @@
 """Evaluations of runs that train together, at their evaluation steps, into their run directories.
 
 `RunEvaluations(at, states)` evaluates k runs' states (stacked, as they train) with the runs' own inference
-and with each method evaluated alongside some of them (`Evaluator.inferring_with`), and appends the records
-to each run directory's eval.jsonl (and the run's sinks). `EvaluatedBeside` wraps it to evaluate in a thread
+and with each test-time rule asked for (`Evaluator.inferring_with`), and appends one line per run to its
+eval.jsonl (the rules' records under "rules"; the run's own to its sinks). `EvaluatedBeside` wraps it to evaluate in a thread
 while the next chunks train. Either way, a callback given with an evaluation (a checkpoint of that step)
 runs once the evaluation's records are written, and `wait()` lands the one in flight first: a checkpoint is
 never ahead of an evaluation not yet written, and the numbers are the same.
@@ -26,63 +26,48 @@ __all__ = ["EvaluatedBeside", "RunEvaluations"]
 
 
 class RunEvaluations:
-    """The evaluations of `runs` (all at the same step; each with `base_key`, `config`, `out`, `sinks`,
-    `companions` and `companion_seconds`, as bati.train's SeedRun), done here.
+    """The evaluations of `runs` (all at the same step; each with `base_key`, `config`, `out`, `sinks` and
+    `rule_seconds`, as bati.train's SeedRun), done here.
 
-    `modes`: the evaluator of each method evaluated alongside some of the runs (`run.companions`); its records
-    go to the companion's directory and its evaluation time to `run.companion_seconds` (its whole cost: the
-    training is the run's). `on_status`: receives the progress bar's line."""
+    `rules`: the evaluator of each test-time rule evaluated in these runs beside their own inference (bati-r and
+    bati-auto in a bati run: `Evaluator.inferring_with`), on the same states, keys and env seeds; each rule's
+    records go into the run's eval.jsonl line under "rules", its evaluation time to `run.rule_seconds`.
+    `on_status`: receives the progress bar's line."""
 
-    def __init__(self, evaluator, runs: list, modes: dict[str, object],
+    def __init__(self, evaluator, runs: list, rules: dict[str, object] | None = None,
                  on_status: Callable[[str], None] = lambda line: None):
-        self.evaluator, self.runs, self.on_status = evaluator, runs, on_status
-        self.modes = []  # (method, evaluator, {run index: the companion's directory})
-        for method, mode in modes.items():
-            dirs = {j: c.out_dir for j, run in enumerate(runs) for c in run.companions if c.method == method}
-            if dirs:
-                self.modes.append((method, mode, dirs))
+        self.evaluator, self.runs, self.rules, self.on_status = evaluator, runs, dict(rules or {}), on_status
 
-    def inputs(self, at: int, states, members: list[int]):
-        """The states, keys and env seeds of the runs `members` for an evaluation at step `at`."""
-        picked = jnp.asarray(members)
-        runs = [self.runs[j] for j in members]
-        keys = jnp.stack([jax.random.fold_in(r.base_key, 2 + at) for r in runs])
-        if len(members) < len(self.runs):
-            states = jax.tree_util.tree_map(lambda x: x[picked], states)
-        return states, keys, [r.config.seed * 7919 + at for r in runs]
-
-    def plan(self) -> list[tuple]:
-        """(method, evaluator, members, their directories): the runs' own inference first (method None)."""
-        everyone = list(range(len(self.runs)))
-        own = (None, self.evaluator, everyone, [r.out for r in self.runs])
-        return [own] + [(m, ev, sorted(dirs), [dirs[j] for j in sorted(dirs)]) for m, ev, dirs in self.modes]
+    def inputs(self, at: int, states):
+        """The runs' states, keys and env seeds for an evaluation at step `at`."""
+        keys = jnp.stack([jax.random.fold_in(r.base_key, 2 + at) for r in self.runs])
+        return states, keys, [r.config.seed * 7919 + at for r in self.runs]
 
     def warm_up(self, at: int, states) -> None:
         """Begin compiling (and starting envs) for the first evaluation while training goes on."""
-        for _, evaluator, members, _ in self.plan():
-            evaluator.warm_up(*self.inputs(at, states, members))
+        for evaluator in [self.evaluator, *self.rules.values()]:
+            evaluator.warm_up(*self.inputs(at, states))
 
-    def run(self, at: int, states) -> list[tuple]:
-        """Evaluate (here or in a thread): (method, members, directories, results, seconds) each."""
-        done = []
-        for method, evaluator, members, dirs in self.plan():
+    def run(self, at: int, states) -> dict:
+        """Evaluate (here or in a thread): {rule (None: the runs' own inference): (results, seconds)}."""
+        done = {}
+        for rule, evaluator in [(None, self.evaluator), *self.rules.items()]:
             began = time.perf_counter()
-            results = evaluator.evaluate_runs(*self.inputs(at, states, members))
-            done.append((method, members, dirs, results, time.perf_counter() - began))
+            done[rule] = evaluator.evaluate_runs(*self.inputs(at, states)), time.perf_counter() - began
         return done
 
-    def write(self, at: int, done: list[tuple]) -> None:
-        """Append the evaluations' records to their run directories."""
-        for method, members, dirs, results, seconds in done:
-            for j, out, result in zip(members, dirs, results):
-                append_jsonl(out / "eval.jsonl", {"step": at, **result.summary()})
-                if method is None:
-                    for sink in self.runs[j].sinks:
-                        sink.log(at, result.summary(), "eval")
-                else:
-                    spent = self.runs[j].companion_seconds
-                    spent[method] = spent.get(method, 0.0) + seconds / len(members)
-        self.on_status(self.evaluator.status(done[0][3]))
+    def write(self, at: int, done: dict) -> None:
+        """Append each run's line (its own evaluation, then its rules') to its eval.jsonl."""
+        own, _ = done[None]
+        for j, run in enumerate(self.runs):
+            rules = {rule: results[j].summary() for rule, (results, _) in done.items() if rule is not None}
+            append_jsonl(run.out / "eval.jsonl", {"step": at, **own[j].summary(), **({"rules": rules} if rules else {})})
+            for sink in run.sinks:
+                sink.log(at, own[j].summary(), "eval")
+            for rule, (_, seconds) in done.items():
+                if rule is not None:
+                    run.rule_seconds[rule] = run.rule_seconds.get(rule, 0.0) + seconds / len(self.runs)
+        self.on_status(self.evaluator.status(own))
 
     def __call__(self, at: int, states, then: Callable[[], None] | None = None) -> None:
         """Evaluate the runs at step `at`, write the records, then call `then`."""

@@ -3,9 +3,8 @@ records, their summaries (eval.json), and opening a finished run again.
 
 A run directory holds config.json (the resolved config; a directory belongs to one), metrics.jsonl and
 eval.jsonl (one line per log / evaluation step), checkpoint.msgpack, eval.json (the summary) and, on your own
-datasets, datasets.json (their sha256). Methods evaluated alongside a run (bati-r, bati-auto beside bati:
-`TaskInference.trains_as`) have sibling directories `<method>-seed<s>` that end up as those of a run trained
-alone.
+datasets, datasets.json (their sha256). A run's test-time rules (bati-r, bati-auto in a bati run:
+`TaskInference.trains_as`) are evaluated into its own eval.jsonl and eval.json, under "rules".
 """
 
 from __future__ import annotations
@@ -39,8 +38,8 @@ from bati.io import (
 )
 from bati.trainer import Trainer, TrainState
 
-__all__ = ["FinishedRun", "RunInputs", "TrainingError", "check_seeds", "claim_run_dirs", "companion_runs",
-           "drop_records_after", "follows", "open_run", "own_env", "summarize_run"]
+__all__ = ["FinishedRun", "RunInputs", "TrainingError", "check_rules", "check_rules_evaluated", "check_seeds",
+           "claim_run_dirs", "drop_records_after", "open_run", "own_env", "summarize_evaluations", "summarize_run"]
 
 DATASETS_RECORD = "datasets.json"
 
@@ -57,46 +56,33 @@ def check_seeds(seeds) -> tuple[int, ...]:
     return seeds
 
 
-def companion_runs(runs: list[ResolvedRun], also) -> list[list[ResolvedRun]]:
-    """For each run, those of the methods `also` evaluated alongside it in sibling directories; ValueError
-    (one line) for a method that trains otherwise, or runs that are not a sweep's `<method>-seed<s>`."""
+def check_rules(config: TrainConfig, rules) -> tuple[str, ...]:
+    """The test-time rules to evaluate in runs of `config`, once each; ValueError (one line) for a method that
+    is not one of its rules (it trains otherwise) or runs on your own datasets."""
     from bati.methods import METHODS, training_of
 
-    configs = [run.config for run in runs]
-    config, also = configs[0], tuple(dict.fromkeys(also))
-    for method in also:
-        if method not in METHODS:
-            raise ValueError(f"unknown method {method!r} to evaluate alongside; choose from: {', '.join(METHODS)}")
-        if method == config.method or training_of(method) != training_of(config.method):
-            raise ValueError(f"{method!r} does not train exactly as {config.method!r}, so it cannot be evaluated "
-                             "alongside it (methods that share a training: bati, bati-r, bati-auto)")
-    if also and config.datasets:
-        raise ValueError("evaluating methods alongside a run needs a family's p_train and p_test contexts, not your "
-                         "own datasets: train each method on its own")
-    for c in configs if also else ():
-        if c.out_dir.name != f"{c.method}-seed{c.seed}":
-            raise ValueError(f"evaluating methods alongside a run needs the sweep's run directories, named "
-                             f"<method>-seed<seed>, not {c.out_dir.name!r}")
-    return [[replace(run.config, method=m, out_dir=run.config.out_dir.parent / f"{m}-seed{run.config.seed}")
-             .resolve(run.family) for m in also] for run in runs]
+    rules = tuple(dict.fromkeys(rules))
+    for rule in rules:
+        if rule not in METHODS:
+            raise ValueError(f"unknown test-time rule {rule!r}; choose from: {', '.join(METHODS)}")
+        if rule == config.method or training_of(rule) != config.method:
+            raise ValueError(f"{rule!r} is not a test-time rule of a {config.method!r} run (it does not train exactly "
+                             "as it; the rules of a bati run: bati-r, bati-auto)")
+    if rules and config.datasets:
+        raise ValueError("test-time rules are evaluated on a family's p_train and p_test contexts, not on your own "
+                         "datasets: train each method on its own")
+    return rules
 
 
-def follows(companion: TrainConfig, run_dir: Path, step: int) -> bool:
-    """Whether `companion` is evaluated alongside the run in `run_dir` (at `step`) from here: not finished, no
-    checkpoint of its own, and exactly the run's evaluations so far (none for a fresh run); its records after
-    the run's step are dropped."""
-    out = companion.out_dir
-    if (out / "eval.json").exists() or (out / CHECKPOINT_NAME).exists():
-        return False
-
-    def steps(directory: Path) -> list[int]:
-        path = directory / "eval.jsonl"
-        return [r["step"] for r in read_jsonl(path, require=("step",))] if path.exists() else []
-
-    if [s for s in steps(out) if s <= step] != steps(run_dir):
-        return False
-    drop_records_after(out, step)
-    return True
+def check_rules_evaluated(out: Path, rules: tuple[str, ...]) -> None:
+    """ValueError (one line) unless every evaluation in `out`'s eval.jsonl holds every rule of `rules`: a rule
+    asked for after its run began cannot be evaluated at the steps already past."""
+    path = out / "eval.jsonl"
+    for record in read_jsonl(path, require=("step",)) if rules and path.exists() else ():
+        missing = [rule for rule in rules if rule not in (record.get("rules") or {})]
+        if missing:
+            raise ValueError(f"{out} has evaluations without {', '.join(missing)} (from step {record['step']}): "
+                             f"train {missing[0]} on its own, in a run directory of its own")
 
 
 @contextlib.contextmanager
@@ -223,9 +209,9 @@ class RunInputs:
     def trainer(self) -> Trainer:
         return Trainer(self.config, self.data, self.family, self.expert)
 
-    def with_method(self, run: ResolvedRun) -> RunInputs:
-        """The same data and expert for `run`, a method trained exactly as this one (evaluated alongside it)."""
-        return replace(self, run=run)
+    def with_method(self, method: str) -> RunInputs:
+        """The same run, data and expert with `method`, a test-time rule of this run (it trains exactly as it)."""
+        return replace(self, run=replace(self.run, config=replace(self.config, method=method)))
 
 
 @dataclass
@@ -271,14 +257,26 @@ def open_run(run_dir: Path, finished: bool = False) -> FinishedRun:
 
 
 def summarize_run(out: Path, last: int = 5) -> dict:
-    """The paper's number: mean of the last `last` evaluations, per context distribution."""
+    """The run's eval.json without its session's records: who it is, the summary of its own evaluations
+    (`summarize_evaluations`) and its config."""
+    config = read_run_config(out)
+    evaluations = summarize_evaluations(out, last=last)
+    summary = {"family": config["family"], "method": config["method"], "seed": config["seed"],
+               "scale": config["scale"], "steps": evaluations["curve"][-1]["step"], **evaluations}
+    summary["config"] = {k: v for k, v in config.items() if k != "runtime"}
+    return summary
+
+
+def summarize_evaluations(out: Path, rule: str | None = None, last: int = 5) -> dict:
+    """The paper's number: mean of the last `last` evaluations in `out`'s eval.jsonl, per context distribution; with
+    the curve and a method's own numbers. `rule`: those of one of the run's test-time rules."""
     evals = read_jsonl(out / "eval.jsonl", require=("step",))
     if not evals:
         raise ValueError(f"{out / 'eval.jsonl'} holds no evaluation; resume the run to redo them")
-    config = read_run_config(out)
+    if rule is not None:
+        evals = [{"step": e["step"], **e["rules"][rule]} for e in evals]
     tail = evals[-last:]
-    summary = {"family": config["family"], "method": config["method"], "seed": config["seed"],
-               "scale": config["scale"], "steps": evals[-1]["step"], "evaluations_averaged": len(tail)}
+    summary = {"evaluations_averaged": len(tail)}
     for source in ("p_test", "p_train") if "p_test_return" in evals[-1] else ():  # own data: no env, no returns
         summary[f"{source}_return"] = float(np.mean([e[f"{source}_return"] for e in tail]))
         summary[f"{source}_inference_error"] = float(np.mean([e[f"{source}_inference_error"] for e in tail]))
@@ -296,7 +294,6 @@ def summarize_run(out: Path, last: int = 5) -> dict:
              and all(isinstance(e.get(k), (int, float)) for e in tail)]
     if extra:
         summary["diagnostics"] = {k: float(np.mean([e[k] for e in tail])) for k in extra}
-    summary["config"] = {k: v for k, v in config.items() if k != "runtime"}
     return summary
 
 

@@ -7,10 +7,10 @@ ones behind advance alone), then trains them together chunk by chunk (`_train_to
 run's eval.json. A lone run is the k = 1 case of the same loop, with the numbers of the unvmapped program.
 
 Methods that train exactly as another and differ only at test time (bati-r and bati-auto train as bati,
-`TaskInference.trains_as`) can be evaluated alongside its run (`also`): at every evaluation, the same states
-with the same keys are evaluated with their inference too, into their own run directories beside it
-(`<method>-seed<s>`), which end up as those of a run trained alone: the same config.json, metrics.jsonl
-(copied), eval.jsonl, checkpoint and eval.json (plus `trained_with`, the sibling that trained).
+`TaskInference.trains_as`) are test-time rules of its run (`rules`): at every evaluation the same states, with the
+same keys and env seeds, are evaluated with each rule's inference too, into the run's own eval.jsonl line and
+eval.json (under "rules"; `bati.report.runs` reads each rule as a result of its own). One training, one run
+directory: a rule's numbers are those of a run of the rule trained alone with the same seed.
 """
 
 from __future__ import annotations
@@ -32,18 +32,19 @@ from bati.device import machine_record
 from bati.envs import TaskFamily
 from bati.evaluate import Evaluator, OfflineEvaluator, reference_returns
 from bati.evaluations import EvaluatedBeside, RunEvaluations
-from bati.io import append_jsonl, atomic_write_bytes, atomic_write_json, atomic_write_text, code_record
+from bati.io import append_jsonl, atomic_write_json, code_record
 from bati.processes import stall_watchdog
 from bati.run_dir import (
     RunInputs,
     TrainingError,
     check_datasets_unchanged,
+    check_rules,
+    check_rules_evaluated,
     check_seeds,
     claim_run_dirs,
-    companion_runs,
     drop_records_after,
-    follows,
     own_env,
+    summarize_evaluations,
     summarize_run,
 )
 from bati.sinks import open_sinks
@@ -63,7 +64,7 @@ def train(config: TrainConfig, show_progress: bool = True) -> dict:
 
 
 def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool = True,
-                runs_dir: Path | None = None, references: dict | None = None, also: tuple[str, ...] = (),
+                runs_dir: Path | None = None, references: dict | None = None, rules: tuple[str, ...] = (),
                 family: TaskFamily | None = None) -> list[dict]:
     """Train (or resume) one run per seed of one config as one compiled program vmapped over seeds.
 
@@ -71,11 +72,10 @@ def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool
     directory), metrics, evaluations and checkpoints, exactly as a run trained alone; seed s gives the
     numbers of the single-seed run s to float tolerance. Returns the runs' summaries (also in each eval.json),
     in the order of `seeds`. `references`: the collection's random and expert returns when the caller has them
-    (`bati run` computes them once for all its methods); by default they are computed here. `also`: methods
-    that train exactly as this one, evaluated alongside each run into `<method>-seed<s>` beside it (see the
-    module docstring); one that is finished, has a checkpoint of its own or has evaluations the run does not
-    match is left alone (it trains on its own). `family`: the config's family object, when the caller has looked
-    it up already.
+    (`bati run` computes them once for all its methods); by default they are computed here. `rules`: methods that
+    train exactly as this one, evaluated in each run as test-time rules (see the module docstring; ValueError for
+    a run that has evaluations without one of them). `family`: the config's family object, when the caller has
+    looked it up already.
     """
     seeds = check_seeds(seeds)
     if len(seeds) > 1 and config.out_dir is not None and runs_dir is None:
@@ -83,9 +83,9 @@ def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool
     out_dir = lambda seed: runs_dir / f"{config.method}-seed{seed}" if runs_dir else config.out_dir  # noqa: E731
     first = replace(config, seed=seeds[0], out_dir=out_dir(seeds[0])).resolve(family)  # a lookup by name, if any
     runs = [first.for_seed(s, out_dir(s)) for s in seeds]
-    companions = companion_runs(runs, also)
-    with claim_run_dirs(runs + [c for group in companions for c in group]):
-        return _train_claimed(runs, companions, show_progress, references)
+    rules = check_rules(first.config, rules)
+    with claim_run_dirs(runs):
+        return _train_claimed(runs, rules, show_progress, references)
 
 
 @dataclass
@@ -97,10 +97,8 @@ class SeedRun:
     base_key: jax.Array
     sinks: list = field(default_factory=list)
     """Optional mirrors of the JSONL logs (TensorBoard, W&B: `--log-to`)."""
-    companions: list[TrainConfig] = field(default_factory=list)
-    """Runs of methods evaluated alongside this one (`train_seeds(..., also=...)`)."""
-    companion_seconds: dict[str, float] = field(default_factory=dict)
-    """Wall time of each one's evaluations (its whole cost: the training is this run's)."""
+    rule_seconds: dict[str, float] = field(default_factory=dict)
+    """Wall time of each test-time rule's evaluations in this session (`train_seeds(..., rules=...)`)."""
 
     @property
     def out(self) -> Path:
@@ -111,20 +109,21 @@ class SeedRun:
         return int(self.state.step)
 
     @classmethod
-    def open(cls, run: ResolvedRun, trainer: Trainer, companions: list[ResolvedRun]) -> SeedRun:
-        """Start fresh or resume from the run directory's checkpoint (the directory is already claimed)."""
+    def open(cls, run: ResolvedRun, trainer: Trainer, rules: tuple[str, ...]) -> SeedRun:
+        """Start fresh or resume from the run directory's checkpoint (the directory is already claimed); ValueError
+        when its evaluations so far lack one of the test-time `rules` (they cannot be redone at past steps)."""
         config = run.config
         base_key = jax.random.PRNGKey(config.seed)
         state = trainer.init(jax.random.fold_in(base_key, 0))
         if (config.out_dir / CHECKPOINT_NAME).exists():
             state = load_checkpoint(config.out_dir / CHECKPOINT_NAME, state)
         drop_records_after(config.out_dir, int(state.step))
+        check_rules_evaluated(config.out_dir, rules)
         sinks = open_sinks(config.log_to, config.out_dir, run.record()) if config.log_to else []
-        following = [c.config for c in companions if follows(c.config, config.out_dir, int(state.step))]
-        return cls(config, state, base_key, sinks, following)
+        return cls(config, state, base_key, sinks)
 
 
-def _train_claimed(resolved: list[ResolvedRun], companions: list[list[ResolvedRun]], show_progress: bool,
+def _train_claimed(resolved: list[ResolvedRun], rules: tuple[str, ...], show_progress: bool,
                    references: dict | None) -> list[dict]:
     """train_seeds once its run directories are checked, claimed and locked."""
     config = resolved[0].config
@@ -137,16 +136,13 @@ def _train_claimed(resolved: list[ResolvedRun], companions: list[list[ResolvedRu
     else:
         evaluator = Evaluator(trainer.method, trainer.iql, data, config.eval_context_length, family=inputs.family,
                               workers=config.eval_workers)
-    runs = [SeedRun.open(run, trainer, group) for run, group in zip(resolved, companions)]
-    records = [r.out / "eval.json" for r in runs] + [c.config.out_dir / "eval.json" for g in companions for c in g]
-    if all(r.step >= config.steps for r in runs) and all(path.is_file() for path in records):
+    runs = [SeedRun.open(run, trainer, rules) for run in resolved]
+    if all(r.step >= config.steps for r in runs) and all((r.out / "eval.json").is_file() for r in runs):
         evaluator.close()  # finished before this call: a rerun that trains nothing rewrites nothing
         for sink in (sink for run in runs for sink in run.sinks):
             sink.close()
         return [json.loads((r.out / "eval.json").read_text()) for r in runs]
-    followed = {c.method for run in runs for c in run.companions}
-    modes = {c.config.method: evaluator.inferring_with(inputs.with_method(c).trainer().method)
-             for group in companions for c in group if c.config.method in followed}
+    modes = {rule: evaluator.inferring_with(inputs.with_method(rule).trainer().method) for rule in rules}
     start = time.perf_counter()
     progress = Progress(
         TextColumn(f"[bold]{config.method} on {config.family}" + (f" x{len(runs)} seeds" if len(runs) > 1 else "")),
@@ -175,7 +171,7 @@ def _train_claimed(resolved: list[ResolvedRun], companions: list[list[ResolvedRu
                     sink.close()
     if references is None and not config.datasets:
         references = reference_returns(data, family=inputs.family, expert=inputs.expert)
-    return _write_summaries(runs, data, references, round(time.perf_counter() - start, 2))
+    return _write_summaries(runs, rules, data, references, round(time.perf_counter() - start, 2))
 
 
 def _train_together(trainer: Trainer, evaluations: RunEvaluations, data: FamilyData, runs: list[SeedRun],
@@ -231,8 +227,9 @@ def _log_metrics(runs: list[SeedRun], step: int, metrics: dict, wall_time: float
             sink.log(step, record, "train")
 
 
-def _write_summaries(runs: list[SeedRun], data: FamilyData, references: dict | None, wall_time: float) -> list[dict]:
-    """Each run's eval.json (and its companions', which take the run's logs and checkpoint as theirs)."""
+def _write_summaries(runs: list[SeedRun], rules: tuple[str, ...], data: FamilyData, references: dict | None,
+                     wall_time: float) -> list[dict]:
+    """Each run's eval.json: its own evaluations' summary and, under "rules", each test-time rule's."""
     session = {**machine_record(), **code_record(), "wall_time_s": wall_time}
     recorded = {k: data.manifest[k] for k in ("n_episodes", "n_context_episodes", "transitions", "transitions_read",
                                               "tasks") if k in data.manifest}
@@ -241,14 +238,8 @@ def _write_summaries(runs: list[SeedRun], data: FamilyData, references: dict | N
     summaries = []
     for run in runs:
         summary = {**summarize_run(run.out), "reference_returns": references, **session, "data": recorded}
-        atomic_write_json(run.out / "eval.json", summary)
+        of_rules = {rule: {**summarize_evaluations(run.out, rule), "wall_time_s": round(run.rule_seconds.get(rule, 0.0), 2)}
+                    for rule in rules}
+        atomic_write_json(run.out / "eval.json", {**summary, **({"rules": of_rules} if of_rules else {})})
         summaries.append(summary)
-        for companion in run.companions:
-            out = companion.out_dir
-            atomic_write_text(out / "metrics.jsonl", (run.out / "metrics.jsonl").read_text())
-            atomic_write_bytes(out / CHECKPOINT_NAME, (run.out / CHECKPOINT_NAME).read_bytes())
-            atomic_write_json(out / "eval.json", {
-                **summarize_run(out), "reference_returns": references, **session, "data": recorded,
-                "wall_time_s": round(run.companion_seconds.get(companion.method, 0.0), 2),
-                "trained_with": run.out.name})
     return summaries
