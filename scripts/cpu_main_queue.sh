@@ -16,7 +16,7 @@
 # 20-80 min with other work beside (IQL alone ~20 min; CSRO and ER-TRL ~1-1.3 h, Recon and BATI-R ~45 min), so the
 # table takes many sessions: AntDir's last paper baseline (CSRO) and ER-TRL, the AntDir noise ablation's
 # BATI and FOCAL (claim C4, untested at every scale), then phase 1 in two passes over the families: the Oracle (the
-# normaliser), BATI and FOCAL first (claims C1-C2 on five families; BATI-R and BATI-auto are evaluated alongside
+# normaliser), BATI and FOCAL first (claims C1-C2 on five families; BATI-R and BATI-auto are test-time rules of
 # BATI's run, which is their training too: `bati+bati-r+bati-auto`), with the context-length and ood-tasks
 # ablations' BATI and FOCAL (claims C5, C6) before the last two families, then the other methods that the claims
 # compare (Recon first, the paper's other baselines, BATI's reward-only variant hosting BATI-auto where BATI's run is
@@ -44,7 +44,7 @@ while [ -n "${WAIT_PID:-}" ] && kill -0 "$WAIT_PID" 2> /dev/null; do sleep 20; d
 stop_at=${STOP_AT:-}
 minutes() {  # a seed's (or, "collect", a family's paper data) estimated minutes
   case $1 in
-    bati+*|bati-r+*) echo 70;;  # BATI (or BATI-R) with the others of its training evaluated alongside
+    bati+*|bati-r+*) echo 70;;  # BATI (or BATI-R) with the others of its training as test-time rules
     oracle|no-context) echo 35;; focal|unicorn) echo 45;; bati|bati-r|bati-auto|recon) echo 65;;
     csro|er-trl) echo 100;; collect) echo 40;;
     dpt) echo 190;;  # 114 ms per step beside an ER-TRL job (benchmarks/train_step.py, 2026-11-28): more than a session
@@ -81,7 +81,7 @@ job() {  # $1 experiment, $2 family, $3 method (a+b: methods of one training, e.
   local cells=1; [ "$experiment" = noise ] && cells=2  # a noise seed trains eps 0 and eps / 2 (eps's are main's)
   for seed in $seeds; do
     local methods=${method//+/ }
-    # methods evaluated alongside the first one's run (bati+bati-r+bati-auto) come with it only while its run is
+    # test-time rules of the first one's run (bati+bati-r+bati-auto) come with it only while its run is
     # to do: beside a finished one they would train on their own, which their own later pass does (main: phase 1b;
     # the ablations: their second pass). Asked of the plans now: the run may have finished since the queue started.
     local first=${methods%% *}
@@ -108,10 +108,11 @@ import sys
 from pathlib import Path
 from bati.experiments.pipeline import plan_experiment
 from bati.experiments.specs import get_spec
+from bati.experiments.sweep import finished as is_done
 out_dir, data_root, experiment, family, seed, method = sys.argv[1:]
 plan = plan_experiment(get_spec(experiment), "cpu", Path(out_dir), seeds=(int(seed),), methods=(method,),
                        families=(family,), data_root=Path(data_root))
-sys.exit(0 if all((c.config.out_dir / "eval.json").exists() for c in plan.cells) else 1)
+sys.exit(0 if all(map(is_done, plan.cells)) else 1)
 EOF
 }
 finished() {  # $1 experiment, $2 family, $3 seed, the rest: methods; true when all their planned cells were finished
@@ -130,18 +131,9 @@ import sys
 from pathlib import Path
 from bati.experiments.pipeline import plan_experiment
 from bati.experiments.specs import get_spec
-from bati.methods import METHODS, training_of
+from bati.experiments.sweep import finished as is_done
 out_dir, data_root = Path(sys.argv[1]), Path(sys.argv[2])
 runs = {p.parent.resolve() for p in out_dir.glob("*/*/*-seed*/checkpoint.msgpack") if not (p.parent / "eval.json").exists()}
-
-
-def with_companions(run: Path, method: str, seed: int) -> str:
-    """`method` and the methods evaluated alongside its cut run so far (their sibling directories hold evaluations,
-    no checkpoint, no eval.json): resumed with it, they go on alongside instead of training on their own later."""
-    companions = [m for m in METHODS if m != method and training_of(m) == training_of(method)
-                  and (run.parent / f"{m}-seed{seed}" / "eval.jsonl").exists()
-                  and not any((run.parent / f"{m}-seed{seed}" / f).exists() for f in ("eval.json", "checkpoint.msgpack"))]
-    return "+".join([method, *companions])
 
 
 for name in ("main", "noise", "context-length", "ood-tasks"):
@@ -149,16 +141,16 @@ for name in ("main", "noise", "context-length", "ood-tasks"):
     for cell in plan_experiment(get_spec(name), "cpu", out_dir, seeds=(0, 1, 2, 3, 4), data_root=data_root).cells:
         c = cell.config
         key = f"{name}:{c.family}:{c.method}:{c.seed}"
-        done[key] = done.get(key, True) and (c.out_dir / "eval.json").exists()
+        done[key] = done.get(key, True) and is_done(cell)
         if c.out_dir.resolve() in runs:
             runs.discard(c.out_dir.resolve())
-            print(f"cut:{name}:{c.family}:{with_companions(c.out_dir.resolve(), c.method, c.seed)}:{c.seed}")
+            print(f"cut:{name}:{c.family}:{c.method}:{c.seed}")  # resumed with the test-time rules it began with
     print(*(f"finished:{key}" for key, value in done.items() if value), sep="\n")
 EOF
 )
 finished_cells=$(sed -n 's/^finished://p' <<< "$plans" | tr '\n' ' ')
 interrupted=$(sed -n 's/^cut://p' <<< "$plans" | sort -u)
-for job in $interrupted; do  # the cut seed only (with the methods evaluated alongside it so far); other seeds later
+for job in $interrupted; do  # the cut seed only (the sweep resumes it with the rules it began with); other seeds later
   IFS=: read -r experiment family method seed <<< "$job"
   seeds=$seed job "$experiment" "$family" "$method" --out-dir "$out_dir"
 done
@@ -183,7 +175,7 @@ noise ${NOISE_FIRST:-bati focal}
 main_phase "$phase1a" "AntDir HalfCheetahVel HalfCheetahDir"  # the families whose data is at hand
 # Claims C5 (Table 1: BATI gains from longer contexts, the baselines do not) and C6 (Table 2: only BATI positive on
 # out-of-range AntDir tasks), untested at every scale with 3 seeds: their claim pair (BATI, with BATI-R evaluated
-# alongside, and FOCAL) before the last two families' data; their other baselines come with phase 1b's.
+# as rules of its run, and FOCAL) before the last two families' data; their other baselines come with phase 1b's.
 ablations() {  # $@: the methods of each of the two ablations
   [ -n "${SKIP_ABLATIONS:-}" ] && return
   needs=()  # their data (other noise settings) is collected by their sweeps
@@ -193,7 +185,7 @@ ablations() {  # $@: the methods of each of the two ablations
 ablations bati+bati-r focal
 main_phase "$phase1a"
 main_phase "$phase1b"
-ablations csro unicorn recon bati-r  # bati-r: the seeds whose BATI run finished without it alongside
+ablations csro unicorn recon bati-r  # bati-r: the seeds whose BATI run finished without it as a rule
 noise ${NOISE_REST:-bati-r csro unicorn recon}
 noise ${NOISE_NEXT:-er-trl}
 # FOCAL's distance as its code lineage computes it (docs/methods.md, "FOCAL"), on AntDir: does it change the

@@ -38,7 +38,7 @@ scale=${SCALE:-paper}
 families=${FAMILIES:-AntDir}
 # The claim methods first (C1-C3 compare BATI with these four), then the references; 3 seeds (the claims' minimum):
 # such a job takes 1.5-3 minutes on an H100 or H200 (docs/performance.md), and the committed cells are skipped. BATI-R and
-# BATI-auto cost only evaluations where BATI's job is pending too (evaluated alongside it: docs/methods.md).
+# BATI-auto cost only evaluations where BATI's job is pending too (test-time rules of its run: docs/methods.md).
 methods=${METHODS:-"bati focal csro recon unicorn oracle bati-r bati-auto no-context"}
 # EXPERIMENTS: `bati experiment` names run per family in this order (default main); each runs the methods of METHODS
 # it has on the family (e.g. EXPERIMENTS='main noise' METHODS='bati focal': claim C4's pair at eps 0 / 0.5 on AntDir

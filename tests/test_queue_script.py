@@ -91,7 +91,7 @@ def test_order_claims_first(tmp_path):
     families = list(dict.fromkeys(family for experiment, family, _, _ in jobs if experiment == "main"))
     assert families == list(FAMILIES)
     assert ("main", "WalkerParam", "dpt", "0") == jobs[-1]  # phase 2 last
-    # BATI's job on a family evaluates BATI-R and BATI-auto alongside (one training): the three in one command
+    # BATI's job on a family evaluates BATI-R and BATI-auto as its test-time rules (one training): one command
 
 
 def test_stop_at_skips_what_would_not_finish(tmp_path):
@@ -116,7 +116,7 @@ def planned_run(tmp_path: Path, experiment: str, family: str, method: str, **whe
 
 
 @pytest.mark.parametrize("experiment, family, method, where", [
-    ("noise", "AntDir", "bati-r", {"noise": 0.5}),  # a noise ablation's cell
+    ("noise", "AntDir", "csro", {"noise": 0.5}),  # a noise ablation's cell
     ("main", "HalfCheetahDir", "focal", {}),  # the main table's, at HalfCheetahDir's eps 0.8 (was taken for noise)
     ("context-length", "HalfCheetahDir", "bati", {}),  # eps 0.9
     ("ood-tasks", "AntDir", "focal", {}),  # eps 1 like main's, another setting
@@ -144,21 +144,16 @@ def test_phase_0_resumes_the_cut_seed_only(tmp_path):
     assert ("ood-tasks", "AntDir", "bati+bati-r", "0") in jobs and ("ood-tasks", "AntDir", "bati+bati-r", "2") in jobs
 
 
-def test_a_cut_run_resumes_with_the_methods_evaluated_alongside_it(tmp_path):
-    # WalkerParam's BATI seed 1 was cut with BATI-R and BATI-auto alongside (their evaluations so far, no checkpoint
-    # of their own): resumed with them, not alone (then each of the two would train on its own in phase 1b)
+def test_a_cut_run_resumes_first_and_alone_its_rules_coming_from_its_own_evaluations(tmp_path):
+    # WalkerParam's BATI seed 1 was cut with BATI-R and BATI-auto as its test-time rules (in its eval.jsonl): its job
+    # is BATI's, first; the sweep resumes the run with the rules it began with (sweep.Sweep.arguments)
     run = planned_run(tmp_path, "main", "WalkerParam", "bati")
     cut = run.parent / "bati-seed1"
     cut.mkdir(parents=True)
     (cut / "checkpoint.msgpack").write_bytes(b"")
-    for method in ("bati-r", "bati-auto"):
-        (run.parent / f"{method}-seed1").mkdir()
-        (run.parent / f"{method}-seed1" / "eval.jsonl").write_text('{"step": 0}\n')
+    (cut / "eval.jsonl").write_text('{"step": 10000, "rules": {"bati-r": {}, "bati-auto": {}}}\n')
     jobs, _ = run_queue(tmp_path, SEEDS="0 1 2")
-    assert jobs[0] == ("main", "WalkerParam", "bati+bati-r+bati-auto", "1")
-    (run.parent / "bati-auto-seed1" / "eval.json").write_text("{}")  # finished on its own: not a companion
-    jobs, _ = run_queue(tmp_path, SEEDS="0 1 2")
-    assert jobs[0] == ("main", "WalkerParam", "bati+bati-r", "1")
+    assert jobs[0] == ("main", "WalkerParam", "bati", "1")
 
 
 def test_wait_pid_of_a_finished_process_does_not_wait(tmp_path):

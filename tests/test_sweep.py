@@ -36,13 +36,13 @@ def test_grid_expands_to_every_cell_with_its_own_directory(tmp_path):
 def test_a_method_that_trains_as_another_joins_its_job_of_the_same_setting_and_seeds(tmp_path):
     def plan(*grids):
         jobs = make_jobs([c for g in grids for c in expand(g, tmp_path)])
-        return sorted((j.config.method, j.seeds, tuple(dict.fromkeys(c.config.method for c in j.alongside))) for j in jobs)
+        return sorted((j.config.method, j.seeds, j.rule_methods) for j in jobs)
 
     assert plan(Grid(methods=("bati", "bati-r", "bati-auto", "recon"), seeds=(0, 1))) == [
         ("bati", (0, 1), ("bati-r", "bati-auto")), ("recon", (0, 1), ())]
-    # without its twin's job (e.g. bati finished), or with other seeds or settings, it trains on its own
+    # without its host in the grid, or with other seeds or settings, it trains on its own
     assert plan(Grid(methods=("bati-r",))) == [("bati-r", (0,), ())]
-    # ... or hosts the other one that trains alike (bati finished, bati-r and bati-auto to do: one training)
+    # ... or hosts the other one that trains alike (no bati in the grid: one training for bati-r and bati-auto)
     assert plan(Grid(methods=("bati-auto", "bati-r", "recon"))) == [("bati-auto", (0,), ("bati-r",)),
                                                                   ("recon", (0,), ())]
     assert plan(Grid(methods=("bati",), seeds=(0, 1)), Grid(methods=("bati-r",), seeds=(0,))) == [
@@ -50,6 +50,21 @@ def test_a_method_that_trains_as_another_joins_its_job_of_the_same_setting_and_s
     assert plan(Grid(methods=("bati",)), Grid(methods=("bati-r",), settings=("steps=40",))) == [
         ("bati", (0,), ()), ("bati-r", (0,), ())]
     assert len(make_jobs(expand(Grid(methods=("bati", "bati-r")), tmp_path), share_training=False)) == 2
+
+
+def test_a_rule_is_hosted_by_the_first_run_that_can_evaluate_it_from_its_start(tmp_path):
+    grid = Grid(methods=("bati-auto", "bati-r", "bati"), settings=TINY)
+    hosts = lambda: {c.config.method: (c.host, c.config.out_dir.name) for c in expand(grid, tmp_path)}  # noqa: E731
+    assert hosts() == {"bati": ("", "bati-seed0"), "bati-r": ("bati", "bati-seed0"), "bati-auto": ("bati", "bati-seed0")}
+    run = next(c for c in expand(grid, tmp_path) if c.config.method == "bati").config.out_dir
+    run.mkdir(parents=True)
+    (run / "eval.jsonl").write_text('{"step": 10, "p_test_return": 1.0, "rules": {"bati-r": {}}}\n')  # began with bati-r
+    assert hosts()["bati-r"] == ("bati", "bati-seed0") and hosts()["bati-auto"] == ("", "bati-auto-seed0")
+    (run / "eval.jsonl").write_text('{"step": 10, "p_test_return": 1.0}\n')  # began with no rule: the first rule hosts
+    assert hosts()["bati-auto"] == ("", "bati-auto-seed0") and hosts()["bati-r"] == ("bati-auto", "bati-auto-seed0")
+    (run.parent / "bati-r-seed0").mkdir()
+    (run.parent / "bati-r-seed0" / "config.json").write_text("{}")  # a run of its own already: it stays one
+    assert hosts()["bati-r"] == ("", "bati-r-seed0")
 
 
 def test_default_noise_and_all_methods_resolve_like_explicit_ones(tmp_path):
@@ -157,10 +172,10 @@ def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(
     out = tmp_path / "sweep"
     real = sweep_module.run_job
 
-    def flaky(config, seeds, runs_dir, references=None, also=()):
+    def flaky(config, seeds, runs_dir, references=None, rules=()):
         if config.method == "recon":
             raise RuntimeError("disk on fire")
-        return real(config, seeds, runs_dir, references, also)
+        return real(config, seeds, runs_dir, references, rules)
 
     monkeypatch.setattr(sweep_module, "run_job", flaky)
     result = sweep_grid(grid, out, show_progress=False)
@@ -176,33 +191,39 @@ def test_a_failed_job_is_recorded_and_the_rest_goes_on_and_a_rerun_completes_it(
                          "sweep: PointGoal quick eps 1 (per-task experts) recon seeds 0: failed (RuntimeError: disk on fire) after 0.0 min"]
 
     ran = []
-    monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None, also=():
-                        ran.append(config.method) or real(config, seeds, runs_dir, references, also))
+    monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None, rules=():
+                        ran.append(config.method) or real(config, seeds, runs_dir, references, rules))
     rerun = sweep_grid(grid, out, show_progress=False)
     assert ran == ["recon"] and rerun.count("done") == 1 and rerun.count("skipped") == 1
 
 
-def test_cells_evaluated_alongside_are_done_without_training_again(tmp_path, local, monkeypatch):
+def test_a_rules_cells_are_done_in_their_hosts_run_without_training_again(tmp_path, local, monkeypatch):
     grid = Grid(methods=("bati", "bati-r", "no-context"), seeds=(0,), settings=TINY)
     out = tmp_path / "sweep"
     real, ran = sweep_module.run_job, []
-    monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None, also=():
-                        ran.append((config.method, also)) or real(config, seeds, runs_dir, references, also))
+    monkeypatch.setattr(sweep_module, "run_job", lambda config, seeds, runs_dir, references=None, rules=():
+                        ran.append((config.method, rules)) or real(config, seeds, runs_dir, references, rules))
     result = sweep_grid(grid, out, show_progress=False)
     assert sorted(ran) == [("bati", ("bati-r",)), ("no-context", ())]
     assert result.count("done") == 3 and _statuses(out) == ["done"] * 3
-    saved = {c.config.method: json.loads((c.config.out_dir / "eval.json").read_text()) for c in expand(grid, out)}
-    assert saved["bati-r"]["trained_with"] == "bati-seed0" and saved["bati-r"]["method"] == "bati-r"
+    cells = {c.config.method: c for c in expand(grid, out)}
+    assert cells["bati-r"].config.out_dir == cells["bati"].config.out_dir and cells["bati-r"].host == "bati"
+    assert not (cells["bati"].config.out_dir.parent / "bati-r-seed0").exists()  # one run directory per training
+    saved = json.loads((cells["bati"].config.out_dir / "eval.json").read_text())
+    assert saved["method"] == "bati" and set(saved["rules"]) == {"bati-r"}
     assert sweep_grid(grid, out, show_progress=False).count("skipped") == 3
-    # bati finished, bati-r and bati-auto to do (another setting): bati-r trains (as bati) and hosts bati-auto
+    # bati-auto asked for later: bati's run has evaluations without it, so it trains on its own
     ran.clear()
-    later = Grid(methods=("bati", "bati-r", "bati-auto"), seeds=(0,), settings=TINY + ("iql.tau=0.8",))
-    sweep_grid(Grid(methods=("bati",), seeds=(0,), settings=later.settings), out, show_progress=False)
+    more = Grid(methods=("bati", "bati-auto"), seeds=(0,), settings=TINY)
+    auto = next(c for c in expand(more, out) if c.config.method == "bati-auto")
+    assert auto.host == "" and auto.config.out_dir.name == "bati-auto-seed0"
+    assert sweep_grid(more, out, show_progress=False).count("done") == 1 and ran == [("bati-auto", ())]
+    # bati-r alone asked for in a fresh setting: the bati run that evaluates it trains
     ran.clear()
-    assert sweep_grid(later, out, show_progress=False).count("done") == 2 and ran == [("bati-r", ("bati-auto",))]
-    auto = json.loads((next(c for c in expand(later, out) if c.config.method == "bati-auto").config.out_dir
-                       / "eval.json").read_text())
-    assert auto["trained_with"] == "bati-r-seed0" and auto["method"] == "bati-auto"
+    alone = Grid(methods=("bati", "bati-r"), seeds=(0,), settings=TINY + ("iql.tau=0.8",))
+    rule = next(c for c in expand(alone, out) if c.config.method == "bati-r")
+    assert sweep_module.sweep([rule], out, show_progress=False).count("done") == 1
+    assert ran == [("bati", ("bati-r",))] and (rule.config.out_dir.name, rule.host) == ("bati-seed0", "bati")
 
 
 def test_the_reference_returns_are_computed_once_per_collection(tmp_path, local, monkeypatch):

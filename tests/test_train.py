@@ -256,6 +256,26 @@ def test_infer_and_novelty_on_a_trained_bati_auto_run(tmp_path, monkeypatch, poi
     assert json.loads((run_dir / "probes" / "novelty.json").read_text())["threshold"] == saved["threshold"]
 
 
+def test_a_rules_probe_opens_its_runs_checkpoint_with_the_rules_inference(tmp_path, monkeypatch, point_data):
+    from bati.experiments.probes import run_probe
+    from bati.report.probes import Probe, probe_path, read_probe
+
+    monkeypatch.setattr(Collection, "load", lambda *a, **k: point_data)
+    train_seeds(_config(tmp_path, "unused", steps=5, eval_every=5), (0,), show_progress=False, runs_dir=tmp_path / "r",
+                rules=("bati-r",))
+    train(_config(tmp_path, "alone", steps=5, eval_every=5, method="bati-r"), show_progress=False)
+    probe = Probe(eval_context_length=10, repeats=1)
+    as_rule = run_probe(tmp_path / "r" / "bati-seed0", probe, "bati-r")
+    alone = run_probe(tmp_path / "alone", probe)
+    assert as_rule["method"] == "bati-r" and as_rule["p_test_return"] == alone["p_test_return"]
+    assert probe_path(tmp_path / "r" / "bati-seed0", probe, "bati-r").parent.name == "bati-r"
+    assert read_probe(tmp_path / "r" / "bati-seed0", probe) is None  # the run's own probe is another file
+    own = run_probe(tmp_path / "r" / "bati-seed0", probe)
+    assert own["method"] == "bati" and read_probe(tmp_path / "r" / "bati-seed0", probe) == own
+    with pytest.raises(ValueError, match="'focal' is not a test-time rule"):
+        run_probe(tmp_path / "r" / "bati-seed0", probe, "focal")
+
+
 def test_training_step_vmaps_over_seeds(synthetic_data):
     data = synthetic_data("PointGoal")
     trainer = Trainer(TrainConfig(family="PointGoal", method="bati", steps=3, **TINY).resolved(), data,

@@ -55,20 +55,21 @@ class LoadedRun:
     """The run's TaskFamily (OwnFamily on your own data)."""
 
 
-def load_run(run_dir: Path, calibrate: bool = True) -> LoadedRun:
-    """A run of a likelihood method at its last checkpoint (BATI-auto calibrated unless `calibrate` is False)."""
+def load_run(run_dir: Path, calibrate: bool = True, rule: str | None = None) -> LoadedRun:
+    """A run of a likelihood method at its last checkpoint (BATI-auto calibrated unless `calibrate` is False);
+    `rule`: with one of its test-time rules' inference (`open_run`)."""
     run_dir = Path(run_dir)
     from bati.methods import METHODS
 
     try:  # the recorded method first: a method without a table is one line before anything is loaded
-        recorded = read_run_config(run_dir).get("method")
+        recorded = rule or read_run_config(run_dir).get("method")
     except (OSError, ValueError):
         recorded = None  # open_run says what is wrong with the directory
     cls = METHODS.get(recorded) if isinstance(recorded, str) else None
     if cls is not None and not (hasattr(cls, "task_latents") and hasattr(cls, "score")):
         raise InferenceError(f"{run_dir}: method {recorded!r} has no task table and likelihood to score")
     try:
-        run = open_run(run_dir)
+        run = open_run(run_dir, rule=rule)
     except ValueError as err:
         raise InferenceError(str(err)) from err
     config, data, method = run.config, run.data, run.trainer.method
@@ -104,11 +105,11 @@ def training_scores(run: LoadedRun, repeats: int, length: int, seed: int = 0) ->
     return np.concatenate([table_scores(run, sample_contexts(train, k, ids, length)).min(1) for k in keys])
 
 
-def novelty(run_dir: Path, repeats: int = 5, quantile: float = QUANTILE, seed: int = 0) -> dict:
+def novelty(run_dir: Path, repeats: int = 5, quantile: float = QUANTILE, seed: int = 0, rule: str | None = None) -> dict:
     """AUROC and flagged shares of the test tasks' p_train / p_test contexts against the training tasks'
     (the `novelty` probe of `bati experiment unknown-tasks` saves it)."""
     start = time.perf_counter()
-    run = load_run(run_dir)
+    run = load_run(run_dir, rule=rule)
     length = run.config.eval_context_length
     known = training_scores(run, repeats, length, seed)
     threshold = float(np.quantile(known, quantile))

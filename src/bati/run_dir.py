@@ -65,9 +65,9 @@ def check_rules(config: TrainConfig, rules) -> tuple[str, ...]:
     for rule in rules:
         if rule not in METHODS:
             raise ValueError(f"unknown test-time rule {rule!r}; choose from: {', '.join(METHODS)}")
-        if rule == config.method or training_of(rule) != config.method:
+        if rule == config.method or training_of(rule) != training_of(config.method):
             raise ValueError(f"{rule!r} is not a test-time rule of a {config.method!r} run (it does not train exactly "
-                             "as it; the rules of a bati run: bati-r, bati-auto)")
+                             "as it; bati, bati-r and bati-auto train alike)")
     if rules and config.datasets:
         raise ValueError("test-time rules are evaluated on a family's p_train and p_test contexts, not on your own "
                          "datasets: train each method on its own")
@@ -237,13 +237,16 @@ class FinishedRun:
         return int(self.state.step)
 
 
-def open_run(run_dir: Path, finished: bool = False) -> FinishedRun:
+def open_run(run_dir: Path, finished: bool = False, rule: str | None = None) -> FinishedRun:
     """The run in `run_dir` at its last checkpoint, on the data it was trained on (read, never collected):
-    the one way inference (bati infer, novelty) and probes open a run. ValueError naming the directory
-    when it holds no run config or no checkpoint, or (with `finished`) when the run has not reached its
-    last step."""
+    the one way inference (bati infer, novelty) and probes open a run. `rule`: with the inference of one of its
+    test-time rules (bati-r, bati-auto in a bati run). ValueError naming the directory when it holds no run
+    config or no checkpoint, or (with `finished`) when the run has not reached its last step."""
     run_dir = Path(run_dir)
-    run = TrainConfig.from_record(read_run_config(run_dir)).resolve()
+    config = TrainConfig.from_record(read_run_config(run_dir))
+    if rule is not None and rule != config.method:
+        config = replace(config, method=check_rules(config, (rule,))[0])
+    run = config.resolve()
     config = run.config
     checkpoint = run_dir / CHECKPOINT_NAME
     if not checkpoint.is_file():

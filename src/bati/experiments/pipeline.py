@@ -90,7 +90,7 @@ class Plan:
         """The plan as its report stores it (`bati.report.stored_plan`): what claims and results read;
         `selection`: the cells of it the report's command runs (default: all)."""
         cells = tuple(PlannedCell(cell.id, cell.label, c.family, c.method, c.seed, c.noise, c.eval_context_length,
-                                  c.experts, c.out_dir, self.probes.get(cell.id, ()))
+                                  c.experts, c.out_dir, self.probes.get(cell.id, ()), cell.host)
                       for cell in self.cells for c in (cell.config,))
         chosen = tuple(cell.id for cell in (selection.cells if selection is not None else ()))
         chosen = () if set(chosen) == {cell.id for cell in self.cells} else chosen  # () is every cell
@@ -198,7 +198,7 @@ def run_experiment(plan: Plan, out_dir: Path, *, data_root: Path = Path("data"),
             if on_probe is not None:
                 on_probe(label)
             try:
-                run_probe(cell.config.out_dir, probe)
+                run_probe(cell.config.out_dir, probe, cell.config.method if cell.host else None)
                 done += 1
             except Exception as err:  # a failed probe is reported; the others go on
                 errors[label] = f"{type(err).__name__}: {err}"

@@ -8,6 +8,8 @@ needs retraining: a probe loads the run's config and final checkpoint, evaluates
     <run>/probes/<name>.json          returns and inference errors per source (mean, std over repeats)
     <run>/probes/<name>-latents.npz   the first repeat's inferred latents (t-SNE of Fig. 6)
 
+(a probe of one of the run's test-time rules, bati-r or bati-auto in a bati run: `<run>/probes/<rule>/...`).
+
 The `novelty` probe measures unknown-task detection instead (`bati.inference.novelty`), and a probe with
 `self_collect_every` = k evaluates with self-collected contexts instead of given ones (`bati.online`:
 no context; z re-inferred from the policy's own last C transitions every k steps; keys `self_*`).
@@ -44,8 +46,9 @@ from bati.report.likelihood import (
 from bati.report.probes import Probe, ProbeError, probe_path, read_probe
 
 
-def run_probe(run_dir: Path, probe: Probe) -> dict:
-    """Evaluate the run's final checkpoint under `probe` (or read the saved result); see the module."""
+def run_probe(run_dir: Path, probe: Probe, rule: str | None = None) -> dict:
+    """Evaluate the run's final checkpoint under `probe` (or read the saved result); see the module. `rule`: with
+    the inference of one of the run's test-time rules (bati-r, bati-auto in a bati run), saved as the rule's."""
     from bati.config import TrainConfig
     from bati.evaluate import Evaluator
     from bati.run_dir import open_run
@@ -57,23 +60,25 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
         config = TrainConfig.from_record(record).resolved()
     except (OSError, ValueError, TypeError) as err:
         raise ProbeError(f"{run_dir} holds no readable run config ({err})") from err
-    saved = read_probe(run_dir, probe)
+    rule = None if rule == config.method else rule
+    path = probe_path(run_dir, probe, rule)
+    saved = read_probe(run_dir, probe, rule)
     if saved is not None and saved.get("step") == config.steps:
         return saved
     if probe.novelty:
         from bati.inference import novelty
 
-        out = {"probe": asdict(probe), **novelty(run_dir, repeats=probe.repeats)}
+        out = {"probe": asdict(probe), **novelty(run_dir, repeats=probe.repeats, rule=rule)}
         if out["step"] != config.steps:
             raise ProbeError(f"{run_dir} is at step {out['step']} of {config.steps}: finish the run first")
-        atomic_write_json(probe_path(run_dir, probe), out)
+        atomic_write_json(path, out)
         return out
     start = time.perf_counter()
     try:
-        run = open_run(run_dir, finished=True)
+        run = open_run(run_dir, finished=True, rule=rule)
     except ValueError as err:
         raise ProbeError(str(err)) from err
-    data, trainer, state = run.data, run.trainer, run.state
+    config, data, trainer, state = run.config, run.data, run.trainer, run.state
     for name, attribute in (("refine_steps", "refine_steps"), ("latent_samples", "num_latent_samples")):
         if getattr(probe, name) is not None:
             if not hasattr(trainer.method, attribute):
@@ -98,7 +103,6 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
         collected = collector.run(states, keys, seeds)
         out.update(collected.summary(), train_tasks=data.train_tasks, test_tasks=data.test_tasks,
                    **code_record(), wall_time_s=round(time.perf_counter() - start, 2))
-        path = probe_path(run_dir, probe)
         atomic_save_npz(path.with_name(f"{probe.name}-latents.npz"), final=collected.latents[0],
                         prior=collected.prior_latents[0], reference=collected.reference[0])
         atomic_write_json(path, out)
@@ -114,7 +118,6 @@ def run_probe(run_dir: Path, probe: Probe) -> dict:
         out[f"{source}_inference_error"] = float(errors.mean())
     out.update(train_tasks=data.train_tasks, test_tasks=data.test_tasks, **code_record(),
                wall_time_s=round(time.perf_counter() - start, 2))
-    path = probe_path(run_dir, probe)
     atomic_save_npz(path.with_name(f"{probe.name}-latents.npz"),
                     **{name: np.asarray(z) for name, z in results[0].latents.items()})
     atomic_write_json(path, out)

@@ -335,8 +335,9 @@ def plot_tsne(plan: Plan, path: Path, methods=("bati", "recon"), paths_for: int 
         probes = sorted((p for p in plan.probes[cell.id] if p.context_mix is not None), key=lambda p: p.context_mix)
         latents, mixes, tasks = [], [], None
         for probe in probes:
-            saved = read_probe(cell.config.out_dir, probe)
-            file = probe_path(cell.config.out_dir, probe).with_name(f"{probe.name}-latents.npz")
+            rule = method if cell.host else None
+            saved = read_probe(cell.config.out_dir, probe, rule)
+            file = probe_path(cell.config.out_dir, probe, rule).with_name(f"{probe.name}-latents.npz")
             if saved is None or not file.exists():
                 continue
             with np.load(file) as arrays:

@@ -102,6 +102,9 @@ class Grid:
 class Cell:
     config: TrainConfig  # resolved, out_dir set
     family: TaskFamily  # the config's family object, looked up once by the grid's expansion
+    host: str = ""
+    """The method whose run evaluates this cell's method as a test-time rule (bati-r and bati-auto in a bati run of
+    the grid: config.out_dir is that run's); "": the cell is a run of its own."""
 
     @cached_property  # (a digest costs a config's record; plans and reports ask for it many times)
     def id(self) -> str:
@@ -158,7 +161,65 @@ def expand(grid: Grid, out_dir: Path, data_root: Path = Path("data")) -> list[Ce
                             cells.append(Cell(replace(config, out_dir=run_dir(out_dir, config, family)), family))
     except (ValueError, TypeError) as err:  # TaskError is a ValueError
         raise SweepError(str(err)) from err
-    return cells
+    return hosted(cells)
+
+
+def hosted(cells: list[Cell]) -> list[Cell]:
+    """The cells with each test-time rule's (bati-r, bati-auto) evaluated in the run of a grid cell it trains as
+    (same setting and seed; bati's run first, else the first of them that can): its run directory is that run's,
+    `host` its method. A run can evaluate a rule from its start only: one that has evaluations without the rule does
+    not host it, and a rule's cell whose own directory holds a run already (trained alone, or a folder of the layout
+    before) stays that run."""
+    from bati.methods import training_of
+
+    groups: dict[tuple, list[Cell]] = {}  # one setting, seed and training: the training's own method first
+    for cell in cells:
+        c = cell.config
+        if not c.datasets:
+            groups.setdefault((c.out_dir.parent, c.seed, training_of(c.method)), []).append(cell)
+    hosts: dict[int, Cell] = {}
+    for group in groups.values():
+        runs: list[Cell] = []
+        for cell in sorted(group, key=lambda cell: cell.config.method != training_of(cell.config.method)):
+            host = next((run for run in runs if _can_host(run.config, cell.config)), None)
+            if host is None:
+                runs.append(cell)
+            else:
+                hosts[id(cell)] = host
+    return [Cell(replace(cell.config, out_dir=hosts[id(cell)].config.out_dir), cell.family,
+                 hosts[id(cell)].config.method) if id(cell) in hosts else cell for cell in cells]
+
+
+def _can_host(run: TrainConfig, rule: TrainConfig) -> bool:
+    """Whether the run of `run` can evaluate `rule`'s method as a test-time rule: the same config but the method, no
+    run in the rule's own directory, and no evaluations of the run without it."""
+    return (replace(rule, method=run.method, out_dir=run.out_dir) == run and not (rule.out_dir / "config.json").exists()
+            and not _evaluated_without(run.out_dir, rule.method))
+
+
+def _rules_evaluated(run_dir: Path) -> tuple[str, ...]:
+    """The test-time rules in the first evaluation of the run in `run_dir` (none before it)."""
+    try:
+        with open(run_dir / "eval.jsonl") as file:
+            return tuple(json.loads(file.readline()).get("rules") or ())
+    except (OSError, ValueError, AttributeError):
+        return ()
+
+
+def _evaluated_without(run_dir: Path, rule: str) -> bool:
+    """Whether the run in `run_dir` has evaluations without the test-time rule `rule`."""
+    try:
+        lines = (run_dir / "eval.jsonl").read_text().splitlines()
+    except OSError:
+        return False
+    for line in lines:
+        try:
+            record = json.loads(line)
+        except ValueError:  # a torn last line: dropped when the run resumes
+            continue
+        if rule not in (record.get("rules") or {}):
+            return True
+    return False
 
 
 def run_dir(out_dir: Path, config: TrainConfig, family: TaskFamily | None = None) -> Path:
@@ -167,26 +228,39 @@ def run_dir(out_dir: Path, config: TrainConfig, family: TaskFamily | None = None
         f"{config.method}-seed{config.seed}"
 
 
+def finished(cell: Cell) -> bool:
+    """Whether the cell's run has an eval.json (a test-time rule's cell: holding the rule's evaluations), whatever its
+    config: what a queue asks before it starts a job (`is_done` also checks the config)."""
+    try:
+        raw = json.loads((cell.config.out_dir / "eval.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return not cell.host or cell.config.method in ((raw.get("rules") if isinstance(raw, dict) else None) or {})
+
+
 def is_done(cell: Cell) -> bool:
-    """The cell's run finished with this very config (its eval.json says so)."""
+    """The cell's run finished with this very config (its eval.json says so; a test-time rule's cell: and holds the
+    rule's evaluations)."""
     path = cell.config.out_dir / "eval.json"
     try:
-        saved = json.loads(path.read_text()).get("config", {})
+        raw = json.loads(path.read_text())
+        saved = raw.get("config", {})
     except (OSError, ValueError, AttributeError):
         return False
-    current = cell.config.record(cell.family)
+    if cell.host and cell.config.method not in (raw.get("rules") or {}):
+        return False
+    current = replace(cell.config, method=cell.host or cell.config.method).record(cell.family)
     return isinstance(saved, dict) and not differing_settings(saved, current, [k for k in current if k not in NOT_IDENTITY])
 
 
 # --- jobs ------------------------------------------------------------------------------------
 @dataclass
 class Job:
-    """The cells of one setting and method, differing only in their seeds: one vmapped program; `alongside`:
-    the same seeds' cells of methods that train exactly as this one (bati-r and bati-auto with bati), evaluated
-    alongside its runs rather than trained again."""
+    """The cells of one setting and method, differing only in their seeds: one vmapped program; `rules`: the cells of
+    test-time rules evaluated in its runs (`Cell.host`), done when the runs are."""
 
     cells: list[Cell]
-    alongside: list[Cell] = field(default_factory=list)
+    rules: list[Cell] = field(default_factory=list)
 
     @property
     def config(self) -> TrainConfig:
@@ -197,50 +271,44 @@ class Job:
         return tuple(c.config.seed for c in self.cells)
 
     @property
+    def rule_methods(self) -> tuple[str, ...]:
+        return tuple(dict.fromkeys(c.config.method for c in self.rules))
+
+    @property
     def label(self) -> str:
         c = self.config
         return f"{c.family} {c.scale} eps={c.noise:g} {c.method} seeds {list(self.seeds)}"
 
 
 def make_jobs(cells: list[Cell], share_training: bool = True) -> list[Job]:
-    """The cells grouped into jobs (one per setting and method); with `share_training`, the jobs of methods that
-    train alike (`TaskInference.trains_as`: bati, bati-r, bati-auto) in the same setting and seeds are one job,
-    hosted by the method they train as (bati) or, without its job (its runs finished), by the first of them."""
-    from bati.methods import training_of
-
+    """The cells grouped into jobs (one per setting and method); with `share_training`, a test-time rule's cells
+    (`Cell.host`) join the job of their host's run, which trains (its cells made here where the plan's selection
+    left them out: asking for bati-r trains the bati run that evaluates it)."""
     jobs: dict[str, Job] = {}
     for cell in cells:
-        jobs.setdefault(cell.job_key, Job([])).cells.append(cell)
-    if not share_training:
-        return list(jobs.values())
-
-    def training(job: Job) -> tuple:  # the run directories' parent holds one setting (method and seed aside)
-        if job.config.datasets:  # own data: no p_train / p_test contexts to evaluate alongside on
-            return (id(job),)
-        return job.config.out_dir.parent, job.seeds, training_of(job.config.method)
-
-    groups: dict[tuple, list[Job]] = {}
+        if cell.host and share_training:
+            host = Cell(replace(cell.config, method=cell.host), cell.family)
+            jobs.setdefault(host.job_key, Job([])).rules.append(cell)
+        else:
+            jobs.setdefault(cell.job_key, Job([])).cells.append(cell)
     for job in jobs.values():
-        groups.setdefault(training(job), []).append(job)
-    kept = []
-    for group in groups.values():
-        host = next((job for job in group if job.config.method == training_of(job.config.method)), group[0])
-        for job in group:
-            if job is not host:
-                host.alongside += job.cells
-        kept.append(host)
-    return kept
+        seeds = {c.config.seed for c in job.cells}
+        for rule in job.rules:
+            if rule.config.seed not in seeds:
+                seeds.add(rule.config.seed)
+                job.cells.append(Cell(replace(rule.config, method=rule.host), rule.family))
+    return list(jobs.values())
 
 
 def run_job(config: TrainConfig, seeds: tuple[int, ...], runs_dir: Path, references: dict | None = None,
-            also: tuple[str, ...] = ()) -> list[dict]:
+            rules: tuple[str, ...] = ()) -> list[dict]:
     """What a worker runs: the job's seeds in one program (no progress bars: the sweep shows its table).
-    `references`: the collection's random and expert returns when an earlier job computed them; `also`: the
-    methods evaluated alongside (Job.alongside)."""
+    `references`: the collection's random and expert returns when an earlier job computed them; `rules`: the
+    test-time rules evaluated in its runs (Job.rules)."""
     from bati.train import train_seeds
 
     summaries = train_seeds(replace(config, out_dir=None), seeds, show_progress=False, runs_dir=runs_dir,
-                            references=references, also=also)
+                            references=references, rules=rules)
     return [{k: s[k] for k in ("seed", "p_train_return", "p_test_return", "reference_returns") if k in s}
             for s in summaries]
 
@@ -336,7 +404,7 @@ def sweep(cells: list[Cell], out_dir: Path, *, data_root: Path = Path("data"), w
     """Run every one of `cells` (a grid's: `sweep_grid`; an experiment plan's) that is not finished yet; see the
     module docstring. `status_file` names the status record in `out_dir` (experiments sharing one directory, and
     so their common cells, keep one each); `locked`: the caller already holds its `record_lock`; `on_job_done`:
-    called with a finished job's done cells (those evaluated alongside too) once they are recorded, before the next
+    called with a finished job's done cells (its rules' too) once they are recorded, before the next
     job starts (an experiment's per-run work, kept when a session ends before the sweep does); `record`: what the
     status record says the cells come from (their grids)."""
     out_dir = Path(out_dir)
@@ -390,35 +458,32 @@ class _SweepStatus:
                    **({"error": self.errors[c.id]} if c.id in self.errors else {})} for c in self.cells}})
 
     def arguments(self, job: Job) -> tuple:
-        also = tuple(dict.fromkeys(c.config.method for c in job.alongside))
+        """run_job's arguments: the job's rules, and those its runs evaluated so far (a run resumed without
+        them would go on without them, and they could not be evaluated in it any more)."""
+        rules = job.rule_methods + tuple(r for c in job.cells for r in _rules_evaluated(c.config.out_dir)
+                                         if r not in job.rule_methods)
         return (job.config, job.seeds, job.config.out_dir.parent, self.references.get(collection_key(job.cells[0])),
-                also)
+                tuple(dict.fromkeys(rules)))
 
     def running(self, job: Job) -> None:
-        for cell in job.cells + job.alongside:
-            self.status[cell.id] = "running"
+        for cell in job.cells + job.rules:
+            if cell.id in self.status:  # (a host's cell made for a rule of the selection is not the plan's)
+                self.status[cell.id] = "running"
         self.table.refresh()
         self.table.log(job, "running")
 
     def finished(self, job: Job, error: str | None, summaries: list[dict] | None = None) -> None:
-        for cell in job.cells:
+        for cell in (c for c in job.cells + job.rules if c.id in self.status):
             self.status[cell.id] = "failed" if error else "done"
             if error:
                 self.errors[cell.id] = error
-        for cell in job.alongside:  # done when its run finished alongside (or already was, on its own)
-            if error or not is_done(cell):
-                self.status[cell.id] = "failed"
-                self.errors[cell.id] = error or (f"not evaluated alongside {job.config.method} (its run directory "
-                                                 "holds a run of its own): rerun the sweep to train it")
-            else:
-                self.status[cell.id] = "done"
         if summaries and summaries[0].get("reference_returns"):
             self.references.setdefault(collection_key(job.cells[0]), summaries[0]["reference_returns"])
         self.record()
         self.table.refresh()
         self.table.log(job, f"failed ({error})" if error else "done")
         if self.on_job_done is not None and not error:
-            self.on_job_done([cell for cell in job.cells + job.alongside if self.status[cell.id] == "done"])
+            self.on_job_done([cell for cell in job.cells + job.rules if self.status.get(cell.id) == "done"])
 
 
 def sweep_and_show(job: SweepJob, *, console, error_console) -> None:
@@ -609,12 +674,12 @@ class LiveTable:
         if self.enabled:
             return
         c = job.config
-        also = ", ".join(dict.fromkeys(cell.config.method for cell in job.alongside))
+        rules = ", ".join(job.rule_methods)
         seeds = " ".join(map(str, job.seeds))
         took = "" if state == "running" else f" after {(now - started) / 60:.1f} min"
         print(f"[{time.strftime('%H:%M:%S')}] sweep: {c.family} {c.scale} eps {c.noise:g} ({cell_data(c)}) {c.method} "
               f"seeds {seeds}"
-              f"{f' (with {also} alongside)' if also else ''}: {state}{took}", file=sys.stderr, flush=True)
+              f"{f' (evaluating {rules} too)' if rules else ''}: {state}{took}", file=sys.stderr, flush=True)
 
     def __enter__(self):
         if self.enabled:

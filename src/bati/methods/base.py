@@ -57,7 +57,8 @@ class TaskInference:
     trains_as: ClassVar[str | None] = None
     """The method whose training this one's is, step for step (same init, loss and keys: bati-r and
     bati-auto train exactly as bati and differ only at test time). A sweep then trains one run of them and
-    evaluates the others alongside it (`bati.train.train_seeds(..., also=...)`); None: its own training."""
+    evaluates the others in it as test-time rules (`bati.train.train_seeds(..., rules=...)`); None: its own
+    training."""
 
     needs_context: bool = False
     """`loss` reads batch["context"]: a context of each batch task, from its training data."""

@@ -1,7 +1,8 @@
 """A probe's settings and its saved result, read without JAX (`bati.experiments.probes` runs probes).
 
 A probe evaluates a finished run's final checkpoint under test-time settings other than the run's own
-(Table 1's context lengths, Fig. 6's interpolated contexts, ...) and saves `<run>/probes/<name>.json`.
+(Table 1's context lengths, Fig. 6's interpolated contexts, ...) and saves `<run>/probes/<name>.json` (one of
+its test-time rules': `<run>/probes/<rule>/<name>.json`).
 """
 
 from __future__ import annotations
@@ -77,14 +78,15 @@ class Probe:
         return self
 
 
-def probe_path(run_dir: Path, probe: Probe) -> Path:
-    return Path(run_dir) / "probes" / f"{probe.name}.json"
+def probe_path(run_dir: Path, probe: Probe, rule: str | None = None) -> Path:
+    """Where the probe of the run in `run_dir` is saved; `rule`: the probe of one of its test-time rules."""
+    return Path(run_dir) / "probes" / (rule or "") / f"{probe.name}.json"
 
 
-def read_probe(run_dir: Path, probe: Probe) -> dict | None:
+def read_probe(run_dir: Path, probe: Probe, rule: str | None = None) -> dict | None:
     """The probe's saved result, None if it is missing, unreadable or for other settings."""
     try:
-        saved = json.loads(probe_path(run_dir, probe).read_text())
+        saved = json.loads(probe_path(run_dir, probe, rule).read_text())
     except (OSError, ValueError):
         return None
     if not isinstance(saved, dict) or not isinstance(saved.get("probe"), dict):

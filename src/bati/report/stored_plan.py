@@ -46,6 +46,9 @@ class PlannedCell:
     run_dir: Path
     """The run's directory (once read: the report folder joined with the stored relative path)."""
     probes: tuple[Probe, ...] = ()
+    host: str = ""
+    """The method whose run evaluates this cell's method as a test-time rule (bati-r and bati-auto in a bati run:
+    `run_dir` is that run's); "": the cell's own run."""
 
     def result(self) -> RunResult | None:
         """The cell's results in its run's eval.json (a test-time rule's where the run evaluated the cell's method as
@@ -69,8 +72,9 @@ class PlannedCell:
         run = self.result()
         if run is None:
             return None
+        rule = self.method if self.host else None
         probes = tuple((probe, saved) for probe in self.probes
-                       if (saved := read_probe(self.run_dir, probe)) is not None)
+                       if (saved := read_probe(self.run_dir, probe, rule)) is not None)
         return FinishedCell(self, run, probes, read_likelihood_split(self.run_dir))
 
 
@@ -104,8 +108,9 @@ class StoredPlan:
 
     def write(self, report_dir: Path) -> Path:
         """`report_dir`/plan.json, atomically; run directories relative to `report_dir`."""
-        cells = [{**asdict(cell), "run_dir": os.path.relpath(cell.run_dir, report_dir),
-                  "probes": [_settings(p) for p in cell.probes]} for cell in self.cells]
+        cells = [{**{k: v for k, v in asdict(cell).items() if k != "host" or v},  # a run of its own: no "host"
+                  "run_dir": os.path.relpath(cell.run_dir, report_dir), "probes": [_settings(p) for p in cell.probes]}
+                 for cell in self.cells]
         head = {"format": PLAN_FORMAT, "experiment": self.experiment, "scale": self.scale,
                 "seeds": list(self.seeds), "settings": list(self.settings), "selection": list(self.selection)}
         text = json.dumps(head)[:-1] + ', "cells": [\n' + ",\n".join(map(json.dumps, cells)) + "\n]}\n"  # a cell a line
