@@ -35,7 +35,7 @@ def write_run(tree: Path, name: str, *, finished: bool, checkpoint: bool, tag: s
 
 def device_results(tmp_path: Path) -> Path:
     """A device's results: bati seed 0 finished (its checkpoint beside), seed 1 cut with a checkpoint, bati-r seed 1
-    evaluated alongside it (no checkpoint of its own), focal seed 0 finished, a session log."""
+    in a folder of its own (no checkpoint), focal seed 0 finished, a session log."""
     results = tmp_path / "device"
     write_run(results, "bati-seed0", finished=True, checkpoint=True)
     write_run(results, "bati-seed1", finished=False, checkpoint=True)

@@ -134,7 +134,7 @@ def test_a_cut_job_resumes_first_in_its_own_experiment(tmp_path, experiment, fam
 
 def test_phase_0_resumes_the_cut_seed_only(tmp_path):
     # ood-tasks' BATI seed 1 was cut: phase 0 resumes seed 1 alone; seeds 0 and 2 come in the ablations' pass,
-    # with BATI-R alongside (phase 0 once trained them all there, BATI alone)
+    # with BATI-R as its rule (phase 0 once trained them all there, BATI alone)
     run = planned_run(tmp_path, "ood-tasks", "AntDir", "bati")
     cut = run.parent / "bati-seed1"
     cut.mkdir(parents=True)
@@ -164,13 +164,13 @@ def test_wait_pid_of_a_finished_process_does_not_wait(tmp_path):
     assert jobs and time.monotonic() - start < 20
 
 
-def test_methods_evaluated_alongside_come_only_with_a_run_to_do(tmp_path):
+def test_test_time_rules_come_only_with_a_run_to_do(tmp_path):
     # HalfCheetahVel's BATI seed 0 is finished: its job is BATI alone, finished, so none; BATI-R and BATI-auto beside
     # a finished BATI would train on their own, which their own later phase does (BATI-R hosting BATI-auto)
     done = planned_run(tmp_path, "main", "HalfCheetahVel", "bati")
     done.mkdir(parents=True)
     other = planned_run(tmp_path, "ood-tasks", "AntDir", "bati")  # another experiment's BATI, same family and seed:
-    other.mkdir(parents=True)  # AntDir's main BATI is still to do, with the others alongside
+    other.mkdir(parents=True)  # AntDir's main BATI is still to do, with the others as its rules
     (other / "eval.json").write_text("{}")
     (done / "eval.json").write_text("{}")
     jobs, _ = run_queue(tmp_path)
@@ -181,7 +181,7 @@ def test_methods_evaluated_alongside_come_only_with_a_run_to_do(tmp_path):
 
 
 def test_an_ablation_whose_bati_run_finished_alone_trains_bati_r_in_its_second_pass(tmp_path):
-    # ood-tasks' BATI seed 0 finished without BATI-R alongside (a resumed cut job): no `bati bati-r` job (BATI-R
+    # ood-tasks' BATI seed 0 finished without BATI-R as its rule (a resumed cut job): no `bati bati-r` job (BATI-R
     # would train on its own before FOCAL's claim cells); BATI-R comes in the ablations' second pass
     run = planned_run(tmp_path, "ood-tasks", "AntDir", "bati")
     run.mkdir(parents=True)
