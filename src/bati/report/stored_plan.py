@@ -75,7 +75,8 @@ class PlannedCell:
         rule = self.method if self.host else None
         probes = tuple((probe, saved) for probe in self.probes
                        if (saved := read_probe(self.run_dir, probe, rule)) is not None)
-        return FinishedCell(self, run, probes, read_likelihood_split(self.run_dir))
+        split = None if self.host else read_likelihood_split(self.run_dir)  # the run's own: its host's
+        return FinishedCell(self, run, probes, split)
 
 
 @dataclass(frozen=True)
