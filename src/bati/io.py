@@ -461,6 +461,14 @@ def _release(path: Path, fd: int) -> None:
         os.close(fd)
 
 
+def rules_evaluated(run_dir: Path) -> frozenset[str] | None:
+    """The test-time rules (bati-r, bati-auto in a bati run) that every evaluation in the run's eval.jsonl holds
+    under "rules"; None before its first evaluation."""
+    path = Path(run_dir) / "eval.jsonl"
+    records = read_jsonl(path, require=("step",)) if path.exists() else []
+    return frozenset.intersection(*(frozenset(r.get("rules") or ()) for r in records)) if records else None
+
+
 def read_run_config(out: Path) -> dict:
     """A run directory's config.json as a dict; one-line errors naming what is wrong (not a directory,
     no config, not JSON, not an object)."""

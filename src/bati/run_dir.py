@@ -35,6 +35,7 @@ from bati.io import (
     read_jsonl,
     read_jsonl_lines,
     read_run_config,
+    rules_evaluated,
 )
 from bati.trainer import Trainer, TrainState
 
@@ -77,12 +78,11 @@ def check_rules(config: TrainConfig, rules) -> tuple[str, ...]:
 def check_rules_evaluated(out: Path, rules: tuple[str, ...]) -> None:
     """ValueError (one line) unless every evaluation in `out`'s eval.jsonl holds every rule of `rules`: a rule
     asked for after its run began cannot be evaluated at the steps already past."""
-    path = out / "eval.jsonl"
-    for record in read_jsonl(path, require=("step",)) if rules and path.exists() else ():
-        missing = [rule for rule in rules if rule not in (record.get("rules") or {})]
-        if missing:
-            raise ValueError(f"{out} has evaluations without {', '.join(missing)} (from step {record['step']}): "
-                             f"train {missing[0]} on its own, in a run directory of its own")
+    held = rules_evaluated(out) if rules else None
+    missing = [rule for rule in rules if held is not None and rule not in held]
+    if missing:
+        raise ValueError(f"{out} has evaluations without {', '.join(missing)} (the run began without it): train "
+                         f"{missing[0]} on its own, in a run directory of its own")
 
 
 @contextlib.contextmanager

@@ -142,7 +142,7 @@ def _train_claimed(resolved: list[ResolvedRun], rules: tuple[str, ...], show_pro
         for sink in (sink for run in runs for sink in run.sinks):
             sink.close()
         return [json.loads((r.out / "eval.json").read_text()) for r in runs]
-    modes = {rule: evaluator.inferring_with(inputs.with_method(rule).trainer().method) for rule in rules}
+    of_rules = {rule: evaluator.inferring_with(inputs.with_method(rule).trainer().method) for rule in rules}
     start = time.perf_counter()
     progress = Progress(
         TextColumn(f"[bold]{config.method} on {config.family}" + (f" x{len(runs)} seeds" if len(runs) > 1 else "")),
@@ -160,12 +160,12 @@ def _train_claimed(resolved: list[ResolvedRun], rules: tuple[str, ...], show_pro
             while (behind := min(r.step for r in runs)) < config.steps:  # the runs behind first, alone
                 group = [r for r in runs if r.step == behind]
                 until = min([r.step for r in runs if r.step > behind] + [config.steps])
-                evaluations = RunEvaluations(evaluator, group, modes, lambda line: report(status=line))
+                evaluations = RunEvaluations(evaluator, group, of_rules, lambda line: report(status=line))
                 _train_together(trainer, evaluations, data, group, until, start,
                                 on_step=lambda step: report(completed=step))
         finally:
-            for evaluator_of_mode in [*modes.values(), evaluator]:  # the modes share the evaluator's envs
-                evaluator_of_mode.close()
+            for evaluator_of_rule in [*of_rules.values(), evaluator]:  # the rules share the evaluator's envs
+                evaluator_of_rule.close()
             for run in runs:
                 for sink in run.sinks:
                     sink.close()

@@ -35,7 +35,7 @@ import tyro
 
 from bati.errors import BatiError, PartialFailure
 from bati.experts.kinds import experts_label
-from bati.io import atomic_write_json, hold_lock
+from bati.io import atomic_write_json, hold_lock, rules_evaluated
 from bati.config import (NOT_IDENTITY, ScaleName, TrainConfig, apply_settings, differing_settings, digest_view,
                          method_config_key, method_sections, section_readers, settable_names)
 
@@ -197,29 +197,19 @@ def _can_host(run: TrainConfig, rule: TrainConfig) -> bool:
             and not _evaluated_without(run.out_dir, rule.method))
 
 
-def _rules_evaluated(run_dir: Path) -> tuple[str, ...]:
-    """The test-time rules in the first evaluation of the run in `run_dir` (none before it)."""
+def _rules_evaluated(run_dir: Path) -> frozenset[str] | None:
+    """`bati.io.rules_evaluated` of the run in `run_dir`; None also for a log that cannot be read (the run's resume
+    says what is wrong with it, not the plan)."""
     try:
-        with open(run_dir / "eval.jsonl") as file:
-            return tuple(json.loads(file.readline()).get("rules") or ())
-    except (OSError, ValueError, AttributeError):
-        return ()
+        return rules_evaluated(run_dir)
+    except (OSError, ValueError):
+        return None
 
 
 def _evaluated_without(run_dir: Path, rule: str) -> bool:
     """Whether the run in `run_dir` has evaluations without the test-time rule `rule`."""
-    try:
-        lines = (run_dir / "eval.jsonl").read_text().splitlines()
-    except OSError:
-        return False
-    for line in lines:
-        try:
-            record = json.loads(line)
-        except ValueError:  # a torn last line: dropped when the run resumes
-            continue
-        if rule not in (record.get("rules") or {}):
-            return True
-    return False
+    held = _rules_evaluated(run_dir)
+    return held is not None and rule not in held
 
 
 def run_dir(out_dir: Path, config: TrainConfig, family: TaskFamily | None = None) -> Path:
@@ -460,7 +450,7 @@ class _SweepStatus:
     def arguments(self, job: Job) -> tuple:
         """run_job's arguments: the job's rules, and those its runs evaluated so far (a run resumed without
         them would go on without them, and they could not be evaluated in it any more)."""
-        rules = job.rule_methods + tuple(r for c in job.cells for r in _rules_evaluated(c.config.out_dir)
+        rules = job.rule_methods + tuple(r for c in job.cells for r in sorted(_rules_evaluated(c.config.out_dir) or ())
                                          if r not in job.rule_methods)
         return (job.config, job.seeds, job.config.out_dir.parent, self.references.get(collection_key(job.cells[0])),
                 tuple(dict.fromkeys(rules)))

@@ -184,7 +184,8 @@ def rules_in(raw: dict) -> tuple[str, ...]:
 
 def rule_view(raw: dict, rule: str) -> dict:
     """An eval.json as the rule's own: its RULE_KEYS from `rules[rule]`, its method (in the config too) the rule."""
-    entry = raw.get("rules", {}).get(rule) if isinstance(raw.get("rules"), dict) else None
+    rules = raw.get("rules")
+    entry = rules.get(rule) if isinstance(rules, dict) else None
     if not isinstance(entry, dict):
         raise ValueError(f"it holds no evaluations of the test-time rule {rule!r}")
     shared = {k: v for k, v in raw.items() if k not in RULE_KEYS and k != "rules"}
