@@ -15,6 +15,7 @@ import pytest
 from bati.cli import main
 from bati.config import (
     NOT_IDENTITY,
+    ResolvedConfig,
     TrainConfig,
     apply_settings,
     differing_settings,
@@ -245,3 +246,28 @@ def test_a_run_resolves_once_into_the_family_object_and_its_collection():
     assert TrainConfig(family="AntDir").resolve(run.family).family is run.family
     with pytest.raises(ValueError, match="resolving a AntDir config with the family PointGoal"):
         TrainConfig(family="AntDir").resolve(get_family("PointGoal"))
+
+
+def test_the_resolved_config_is_typed_with_the_values_that_run():
+    narrowed = [f for f in dataclasses.fields(ResolvedConfig) if f.kw_only]
+    assert {f.name for f in narrowed} >= {"family", "steps", "batch_size", "task_batch", "context_length",
+                                          "eval_context_length", "eval_every", "checkpoint_every", "noise", "out_dir"}
+    hints = get_type_hints(ResolvedConfig, include_extras=False)
+    run = TrainConfig(family="HalfCheetahDir", scale="cpu").resolve()
+    assert type(run.config) is ResolvedConfig
+    for f in narrowed:  # no None left, of the declared type (the Literal of the experts kinds aside)
+        value = getattr(run.config, f.name)
+        assert value is not None, f.name
+        if isinstance(hints[f.name], type):
+            assert isinstance(value, hints[f.name]), (f.name, value)
+    assert (run.config.steps, run.config.eval_every, run.config.context_length, run.config.noise) == \
+        (100_000, 10_000, 200, 0.8)
+    assert run.collection.sizes == (1_000, 20) and run.config.episodes_per_task is None  # the scale's, as recorded
+    with pytest.raises(TypeError, match="steps"):  # built only with every value
+        ResolvedConfig(**{f.name: getattr(run.config, f.name) for f in dataclasses.fields(ResolvedConfig)
+                          if f.name != "steps"})
+
+
+def test_a_context_longer_than_the_context_data_is_refused_by_the_collection():
+    with pytest.raises(ValueError, match=r"eval_context_length \(4001\) must be at most the 4,000 transitions"):
+        TrainConfig(family="AntDir", scale="cpu", eval_context_length=4001).resolve()

@@ -20,7 +20,7 @@ import tyro
 from bati.checks import check_finite_fields, check_hidden_dims, check_integer, check_number
 from bati.cli_hints import DEFAULT_IN_DOC
 from bati.data.batch import Collection
-from bati.data.own import OWN_FAMILY, family_of  # noqa: F401 (family_of: imported from here by others)
+from bati.data.own import OWN_FAMILY, check_own_data, family_of  # noqa: F401 (family_of: imported from here by others)
 from bati.envs import TaskFamily, TaskSplit
 from bati.experts.kinds import ExpertsKind, family_experts
 from bati.io import read_run_config
@@ -251,7 +251,7 @@ class TrainConfig:
         return None if key is None else getattr(self, key)
 
     # --- defaults and checks ------------------------------------------------------------------
-    def resolved(self) -> TrainConfig:
+    def resolved(self) -> ResolvedConfig:
         """Every default filled in (an explicit default and None give the same config) and every value
         checked, before any work: ValueError / TaskError with one line naming the setting."""
         return self.resolve().config
@@ -280,42 +280,38 @@ class TrainConfig:
                 raise ValueError(f"{self.method} imitates an expert of the tasks, which your own data does not have")
             if not 0.0 < self.held_out < 1.0:
                 raise ValueError(f"held_out must be in (0, 1), got {self.held_out!r}")
-            from bati.data.own import dataset_path
-
-            for dataset in self.datasets:
-                dataset_path(dataset)  # a missing one: DatasetNotFoundError before any work
+            check_own_data(self.datasets, self.eval_env, self.task_key)  # before any work
         context_length = pick(self.context_length, family.default_context_length)
         rl_dims = pick(self.iql.hidden_dims, scale.hidden_dims)
-        resolved = replace(
-            self,
-            family=name,
-            datasets=tuple(self.datasets),
-            log_to=tuple(self.log_to),
-            noise=family.validate_noise(self.noise),
-            train_task_range=None if own else split.train_range,
-            test_task_range=None if own else split.test_range,
-            steps=steps,
-            batch_size=pick(self.batch_size, scale.batch_size),
-            task_batch=pick(self.task_batch, 16 if own else min(16, split.n_train)),
-            eval_every=eval_every,
-            context_length=context_length,
-            eval_context_length=pick(self.eval_context_length, context_length),
-            checkpoint_every=pick(self.checkpoint_every, eval_every),
-            out_dir=Path(out),
-            data_root=Path(self.data_root),
-            zoo_dir=None if self.zoo_dir is None else Path(self.zoo_dir),
-            experts=family_experts(family, self.experts, self.data_seed, split),
-            iql=replace(self.iql, hidden_dims=tuple(rl_dims), discrete=family.discrete_actions),
+        resolved = ResolvedConfig(**{
+            **{f.name: getattr(self, f.name) for f in fields(TrainConfig)},
+            "family": name,
+            "datasets": tuple(self.datasets),
+            "log_to": tuple(self.log_to),
+            "noise": family.validate_noise(self.noise),
+            "train_task_range": None if own else split.train_range,
+            "test_task_range": None if own else split.test_range,
+            "steps": steps,
+            "batch_size": pick(self.batch_size, scale.batch_size),
+            "task_batch": pick(self.task_batch, 16 if own else min(16, split.n_train)),
+            "eval_every": eval_every,
+            "context_length": context_length,
+            "eval_context_length": pick(self.eval_context_length, context_length),
+            "checkpoint_every": pick(self.checkpoint_every, eval_every),
+            "out_dir": Path(out),
+            "data_root": Path(self.data_root),
+            "zoo_dir": None if self.zoo_dir is None else Path(self.zoo_dir),
+            "experts": family_experts(family, self.experts, self.data_seed, split),
+            "iql": replace(self.iql, hidden_dims=tuple(rl_dims), discrete=family.discrete_actions),
             **{name: _for_family(getattr(self, name), family.record) for name in method_sections()},
-        )
-        _check_resolved(resolved, family, split)
+        })
         collection = None if own else Collection(
             family, resolved.data_scale, resolved.data_seed, resolved.noise, resolved.data_root, resolved.task_split(),
             resolved.experts, resolved.episodes_per_task, resolved.context_episodes)
+        _check_resolved(resolved, collection)
         if collection is not None:
             collection.check_fits()  # a size that would exhaust the machine: one line, before any record
         return ResolvedRun(resolved, family, collection)
-
 
     def _check_data_source(self, own: bool) -> None:
         """Your own data (--datasets) or a family's collection, with the settings that belong to it (one line)."""
@@ -327,13 +323,9 @@ class TrainConfig:
         if not own and (self.task_key is not None or self.held_out != TrainConfig.held_out):
             name = "--task-key" if self.task_key is not None else "--held-out"
             raise ValueError(f"{name} applies to your own data: give it with --datasets")
-        if self.eval_env is not None:
-            if not own:
-                raise ValueError(f"--eval-env is your own data's env: the families' envs are built in (the "
-                                 f"{self.family or 'PointGoal'} runs are evaluated in theirs)")
-            from bati.data.own import check_eval_env
-
-            check_eval_env(self.eval_env, self.task_key)
+        if self.eval_env is not None and not own:
+            raise ValueError(f"--eval-env is your own data's env: the families' envs are built in (the "
+                             f"{self.family or 'PointGoal'} runs are evaluated in theirs)")
 
     def _check_values(self, family: TaskFamily) -> None:
         """Every number, sink and method section of the config checked (one line each), before any default."""
@@ -367,32 +359,44 @@ class TrainConfig:
             if dims is not None:
                 check_hidden_dims(setting, dims)
 
-def _check_resolved(resolved: TrainConfig, family: TaskFamily, split: TaskSplit | None) -> None:
+@dataclass(kw_only=True)
+class ResolvedConfig(TrainConfig):
+    """A config with every default filled in (`TrainConfig.resolve`): the values that run, typed as such; what
+    config.json records. `episodes_per_task` and `context_episodes` stay None where the scale's sizes are meant
+    (a record names a size only where one was given, so that its digest and run directory stay the same): the
+    run's collection holds them (`Collection.sizes`); `zoo_dir` None is the package's experts, the task ranges
+    and `task_key` None are the defaults they say."""
+
+    family: str = field()
+    steps: int = field()
+    task_batch: int = field()
+    batch_size: int = field()
+    context_length: int = field()
+    eval_context_length: int = field()
+    eval_every: int = field()
+    checkpoint_every: int = field()
+    noise: float = field()
+    experts: ExpertsKind = field()
+    out_dir: Path = field()
+
+
+def _check_resolved(resolved: ResolvedConfig, collection: Collection | None) -> None:
     """What only the filled-in values can tell (one line): contexts longer than the data that holds them, a batch of
     more tasks than train, evaluations off the logging grid."""
-    own, context_length = split is None, resolved.context_length
-    if own and resolved.eval_context_length > context_length:
+    context_length = resolved.context_length
+    if collection is None and resolved.eval_context_length > context_length:
         raise ValueError(f"eval_context_length ({resolved.eval_context_length}) must be at most context_length "
                          f"({context_length}): your episodes are cut into segments of context_length")
-    if not own:  # a context is cut from one test task's context data: it cannot be longer than they are
-        from bati.data.collect import scale_sizes
-
-        episodes = resolved.context_episodes
-        if episodes is None:
-            episodes = scale_sizes(family, resolved.data_scale)[1]
-        held = episodes * family.record.episode_length
+    if collection is not None:  # a context is cut from one test task's context data
         for setting in ("context_length", "eval_context_length"):
-            if getattr(resolved, setting) > held:
-                raise ValueError(f"{setting} ({getattr(resolved, setting)}) must be at most the {held:,} transitions "
-                                 f"of a test task's context data ({episodes} episodes of "
-                                 f"{family.record.episode_length}; more: --context-episodes)")
+            collection.check_context_length(setting, getattr(resolved, setting))
     if resolved.method == "dpt" and resolved.dpt.max_length < max(context_length, resolved.eval_context_length):
         raise ValueError(f"dpt.max_length ({resolved.dpt.max_length}) must be >= the context length "
                          f"({max(context_length, resolved.eval_context_length)}): the transformer's positions "
                          "cover max_length transitions")
-    if not own and resolved.task_batch > split.n_train:
-        raise ValueError(f"task_batch ({resolved.task_batch}) must be at most n_train_tasks ({split.n_train}): "
-                         "a batch draws distinct training tasks")
+    if collection is not None and resolved.task_batch > collection.tasks.n_train:
+        raise ValueError(f"task_batch ({resolved.task_batch}) must be at most n_train_tasks "
+                         f"({collection.tasks.n_train}): a batch draws distinct training tasks")
     if resolved.eval_every % resolved.log_every or resolved.checkpoint_every % resolved.log_every:
         raise ValueError(f"eval_every ({resolved.eval_every}) and checkpoint_every ({resolved.checkpoint_every}) "
                          f"must be multiples of log_every ({resolved.log_every})")
@@ -402,7 +406,7 @@ def _check_resolved(resolved: TrainConfig, family: TaskFamily, split: TaskSplit 
 class ResolvedRun:
     """A run resolved once at its entry point (`TrainConfig.resolve`) and passed down as typed values."""
 
-    config: TrainConfig
+    config: ResolvedConfig
     """Every default filled in: what config.json records (names, not objects)."""
     family: TaskFamily
     """The family object (an OwnFamily on your own datasets)."""

@@ -9,7 +9,7 @@ For a finished run of a method with a task table and an Eq. 8 objective (bati, b
 - Unknown-task score of a context: the best (lowest) of these, i.e. how well the best known task
   explains it. Calibrated on contexts of the training tasks (windows of their own data): the threshold
   is the `quantile` (0.95) of those scores, and a context above it is flagged "unknown".
-- `novelty(run_dir)` (the `novelty` probe): over `repeats` draws of one context per task, the AUROC of telling the test tasks'
+- `novelty(run)` (the `novelty` probe): over `repeats` draws of one context per task, the AUROC of telling the test tasks'
   p_train and p_test contexts from the training tasks' contexts, and the share of each flagged. On the
   `ood-tasks` data the test tasks lie outside the training range (high AUROC wanted); on the default
   data they lie inside it (a low AUROC means new tasks of the training range are not called unknown).
@@ -20,7 +20,6 @@ For a finished run of a method with a task table and an Eq. 8 objective (bati, b
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,8 +32,8 @@ from bati.data import FamilyData, sample_contexts
 from bati.data.batch import TRANSITION_FIELDS
 from bati.errors import BatiError
 from bati.evaluate import calibrate as calibrate_method
-from bati.io import code_record, read_run_config
-from bati.run_dir import open_run
+from bati.io import read_run_config
+from bati.run_dir import FinishedRun, open_run
 
 QUANTILE = 0.95
 
@@ -72,15 +71,21 @@ def load_run(run_dir: Path, calibrate: bool = True, rule: str | None = None) -> 
         run = open_run(run_dir, rule=rule)
     except ValueError as err:
         raise InferenceError(str(err)) from err
+    return scorable(run, calibrate)
+
+
+def scorable(run: FinishedRun, calibrate: bool = True) -> LoadedRun:
+    """An opened run (`open_run`) ready to score contexts: its method's final parameters, BATI-auto's calibrated
+    unless `calibrate` is False. InferenceError for a method without a task table."""
     config, data, method = run.config, run.data, run.trainer.method
     if not hasattr(method, "task_latents") or not hasattr(method, "score"):
-        raise InferenceError(f"{run_dir}: method {config.method!r} has no task table and likelihood to score")
+        raise InferenceError(f"{run.run_dir}: method {config.method!r} has no task table and likelihood to score")
     params = run.state.method.params
     if calibrate and method.calibrates:
         distances = jnp.asarray(run.inputs.family.distance_matrix(data.train_tasks, data.train_tasks), jnp.float32)
         params, _ = calibrate_method(method, params, data, config.eval_context_length, jax.random.PRNGKey(0xCA1),
                                      distances)
-    return LoadedRun(run_dir, config, data, method, params, run.step, run.inputs.family)
+    return LoadedRun(run.run_dir, config, data, method, params, run.step, run.inputs.family)
 
 
 def table_scores(run: LoadedRun, contexts: dict) -> np.ndarray:
@@ -105,11 +110,9 @@ def training_scores(run: LoadedRun, repeats: int, length: int, seed: int = 0) ->
     return np.concatenate([table_scores(run, sample_contexts(train, k, ids, length)).min(1) for k in keys])
 
 
-def novelty(run_dir: Path, repeats: int = 5, quantile: float = QUANTILE, seed: int = 0, rule: str | None = None) -> dict:
+def novelty(run: LoadedRun, repeats: int = 5, quantile: float = QUANTILE, seed: int = 0) -> dict:
     """AUROC and flagged shares of the test tasks' p_train / p_test contexts against the training tasks'
     (the `novelty` probe of `bati experiment unknown-tasks` saves it)."""
-    start = time.perf_counter()
-    run = load_run(run_dir, rule=rule)
     length = run.config.eval_context_length
     known = training_scores(run, repeats, length, seed)
     threshold = float(np.quantile(known, quantile))
@@ -127,7 +130,6 @@ def novelty(run_dir: Path, repeats: int = 5, quantile: float = QUANTILE, seed: i
         out[f"{source}_flagged"] = float(np.mean(scores[source] > threshold))
         out[f"{source}_score_mean"] = float(scores[source].mean())
     out["p_test_vs_p_train_auroc"] = auroc(scores["p_test"], scores["p_train"])
-    out.update(**code_record(), wall_time_s=round(time.perf_counter() - start, 2))
     return out
 
 

@@ -37,9 +37,10 @@ from bati.io import (
     read_run_config,
     rules_evaluated,
 )
+from bati.methods import check_rules
 from bati.trainer import Trainer, TrainState
 
-__all__ = ["FinishedRun", "RunInputs", "TrainingError", "check_rules", "check_rules_evaluated", "check_seeds",
+__all__ = ["FinishedRun", "RunInputs", "TrainingError", "check_rules_evaluated", "check_seeds",
            "claim_run_dirs", "drop_records_after", "open_run", "own_env", "summarize_evaluations", "summarize_run"]
 
 DATASETS_RECORD = "datasets.json"
@@ -55,24 +56,6 @@ def check_seeds(seeds) -> tuple[int, ...]:
     if not seeds or len(set(seeds)) != len(seeds) or any(not isinstance(s, int) or s < 0 for s in seeds):
         raise ValueError(f"seeds must be distinct integers >= 0 (at least one), got {list(seeds)}")
     return seeds
-
-
-def check_rules(config: TrainConfig, rules) -> tuple[str, ...]:
-    """The test-time rules to evaluate in runs of `config`, once each; ValueError (one line) for a method that
-    is not one of its rules (it trains otherwise) or runs on your own datasets."""
-    from bati.methods import METHODS, training_of
-
-    rules = tuple(dict.fromkeys(rules))
-    for rule in rules:
-        if rule not in METHODS:
-            raise ValueError(f"unknown test-time rule {rule!r}; choose from: {', '.join(METHODS)}")
-        if rule == config.method or training_of(rule) != training_of(config.method):
-            raise ValueError(f"{rule!r} is not a test-time rule of a {config.method!r} run (it does not train exactly "
-                             "as it; bati, bati-r and bati-auto train alike)")
-    if rules and config.datasets:
-        raise ValueError("test-time rules are evaluated on a family's p_train and p_test contexts, not on your own "
-                         "datasets: train each method on its own")
-    return rules
 
 
 def check_rules_evaluated(out: Path, rules: tuple[str, ...]) -> None:
@@ -245,7 +228,7 @@ def open_run(run_dir: Path, finished: bool = False, rule: str | None = None) -> 
     run_dir = Path(run_dir)
     config = TrainConfig.from_record(read_run_config(run_dir))
     if rule is not None and rule != config.method:
-        config = replace(config, method=check_rules(config, (rule,))[0])
+        config = replace(config, method=check_rules(config.method, (rule,), bool(config.datasets))[0])
     run = config.resolve()
     config = run.config
     checkpoint = run_dir / CHECKPOINT_NAME

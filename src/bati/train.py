@@ -33,12 +33,12 @@ from bati.envs import TaskFamily
 from bati.evaluate import Evaluator, OfflineEvaluator, reference_returns
 from bati.evaluations import EvaluatedBeside, RunEvaluations
 from bati.io import append_jsonl, atomic_write_json, code_record
+from bati.methods import check_rules
 from bati.processes import stall_watchdog
 from bati.run_dir import (
     RunInputs,
     TrainingError,
     check_datasets_unchanged,
-    check_rules,
     check_rules_evaluated,
     check_seeds,
     claim_run_dirs,
@@ -83,7 +83,7 @@ def train_seeds(config: TrainConfig, seeds: tuple[int, ...], show_progress: bool
     out_dir = lambda seed: runs_dir / f"{config.method}-seed{seed}" if runs_dir else config.out_dir  # noqa: E731
     first = replace(config, seed=seeds[0], out_dir=out_dir(seeds[0])).resolve(family)  # a lookup by name, if any
     runs = [first.for_seed(s, out_dir(s)) for s in seeds]
-    rules = check_rules(first.config, rules)
+    rules = check_rules(first.config.method, rules, bool(first.config.datasets))
     with claim_run_dirs(runs):
         return _train_claimed(runs, rules, show_progress, references)
 

@@ -316,17 +316,35 @@ class Collection:
                        n_context_episodes=self.n_context_episodes, zoo_dir=zoo_dir, progress=progress,
                        tasks=self.tasks, experts=self.experts, check_only=check_only)
 
+    @property
+    def sizes(self) -> tuple[int, int]:
+        """(episodes per training task, episodes per test task's context dataset): the given ones, else the
+        scale's."""
+        from bati.data.collect import scale_sizes
+
+        default_n, default_ctx = scale_sizes(self.family, self.scale)
+        return (default_n if self.n_episodes is None else self.n_episodes,
+                default_ctx if self.n_context_episodes is None else self.n_context_episodes)
+
     def check_fits(self) -> None:
         """ValueError (one line) where its sizes cannot be held in memory or on the data root's disk
         (`bati.data.collect.check_fits`); nothing to check for a collection already on disk."""
-        from bati.data.collect import check_fits, scale_sizes
+        from bati.data.collect import check_fits
 
         if (store.collection_dir(self.root, self.family, self.scale, self.seed, self.noise, self.tasks, self.experts)
                 / store.MANIFEST).is_file():
             return
-        default_n, default_ctx = scale_sizes(self.family, self.scale)
-        check_fits(self.family, default_n if self.n_episodes is None else self.n_episodes,
-                   default_ctx if self.n_context_episodes is None else self.n_context_episodes, self.tasks, self.root)
+        check_fits(self.family, *self.sizes, self.tasks, self.root)
+
+    def check_context_length(self, setting: str, length: int) -> None:
+        """ValueError (one line) where a context of `length` transitions is longer than a test task's context
+        data, from which every context is cut."""
+        episodes = self.sizes[1]
+        held = episodes * self.family.record.episode_length
+        if length > held:
+            raise ValueError(f"{setting} ({length}) must be at most the {held:,} transitions of a test task's "
+                             f"context data ({episodes} episodes of {self.family.record.episode_length}; more: "
+                             "--context-episodes)")
 
     def ensure(self, progress: bool = True, zoo_dir: str | Path | None = None) -> FamilyData:
         """Collect it if missing, then load it."""

@@ -126,6 +126,15 @@ class OwnData(FamilyData):
     held_out: TaskData | None = None
 
 
+def check_own_data(datasets: tuple[str, ...], eval_env: str | None, task_key: str | None) -> None:
+    """Your own data checked before any work (one line): every dataset at hand (DatasetNotFoundError), the env to
+    evaluate in, if given, made (EnvError)."""
+    for dataset in datasets:
+        dataset_path(dataset)
+    if eval_env is not None:
+        check_eval_env(eval_env, task_key)
+
+
 def dataset_path(dataset: str) -> Path:
     """Where a dataset given by directory or by Minari id lives; DatasetNotFoundError (one line) if nowhere."""
     import os

@@ -50,35 +50,44 @@ def run_probe(run_dir: Path, probe: Probe, rule: str | None = None) -> dict:
     """Evaluate the run's final checkpoint under `probe` (or read the saved result); see the module. `rule`: with
     the inference of one of the run's test-time rules (bati-r, bati-auto in a bati run), saved as the rule's."""
     from bati.config import TrainConfig
-    from bati.evaluate import Evaluator
     from bati.run_dir import open_run
 
     probe = probe.check()
     run_dir = Path(run_dir)
     try:
-        record = json.loads((run_dir / "config.json").read_text())
-        config = TrainConfig.from_record(record).resolved()
+        config = TrainConfig.from_record(json.loads((run_dir / "config.json").read_text())).resolved()
     except (OSError, ValueError, TypeError) as err:
         raise ProbeError(f"{run_dir} holds no readable run config ({err})") from err
     rule = None if rule == config.method else rule
-    path = probe_path(run_dir, probe, rule)
     saved = read_probe(run_dir, probe, rule)
     if saved is not None and saved.get("step") == config.steps:
         return saved
-    if probe.novelty:
-        from bati.inference import novelty
-
-        out = {"probe": asdict(probe), **novelty(run_dir, repeats=probe.repeats, rule=rule)}
-        if out["step"] != config.steps:
-            raise ProbeError(f"{run_dir} is at step {out['step']} of {config.steps}: finish the run first")
-        atomic_write_json(path, out)
-        return out
     start = time.perf_counter()
     try:
         run = open_run(run_dir, finished=True, rule=rule)
     except ValueError as err:
         raise ProbeError(str(err)) from err
-    config, data, trainer, state = run.config, run.data, run.trainer, run.state
+    config = run.config
+    out = {"probe": asdict(probe), "run_dir": str(run_dir), "family": config.family, "method": config.method,
+           "seed": config.seed, "step": config.steps}
+    path = probe_path(run_dir, probe, rule)
+    if probe.novelty:
+        from bati.inference import novelty, scorable
+
+        out.update(novelty(scorable(run), repeats=probe.repeats))
+    else:
+        out.update(_evaluated(run, probe, path.with_name(f"{probe.name}-latents.npz")))
+    out.update(**code_record(), wall_time_s=round(time.perf_counter() - start, 2))
+    atomic_write_json(path, out)
+    return out
+
+
+def _evaluated(run, probe: Probe, latents_path: Path) -> dict:
+    """The probe's returns and inference errors per source (`repeats` evaluations of the run's final state, or
+    its self-collected evaluation), its first repeat's latents saved to `latents_path`."""
+    from bati.evaluate import Evaluator
+
+    config, data, trainer = run.config, run.data, run.trainer
     for name, attribute in (("refine_steps", "refine_steps"), ("latent_samples", "num_latent_samples")):
         if getattr(probe, name) is not None:
             if not hasattr(trainer.method, attribute):
@@ -87,12 +96,11 @@ def run_probe(run_dir: Path, probe: Probe, rule: str | None = None) -> dict:
     length = probe.eval_context_length or config.eval_context_length
     evaluator = Evaluator(trainer.method, trainer.iql, data, length, probe.context_mix, family=run.inputs.family)
     k = probe.repeats
-    states = jax.tree_util.tree_map(lambda x: jnp.stack([jnp.asarray(x)] * k), state)
+    states = jax.tree_util.tree_map(lambda x: jnp.stack([jnp.asarray(x)] * k), run.state)
     base = jax.random.fold_in(jax.random.PRNGKey(config.seed), 0x9B0E)
     keys = jnp.stack([jax.random.fold_in(base, i) for i in range(k)])
     seeds = [50_000 + 1000 * i + config.seed for i in range(k)]
-    out = {"probe": asdict(probe), "run_dir": str(run_dir), "family": config.family, "method": config.method,
-           "seed": config.seed, "step": config.steps, "context_length": length}
+    out = {"context_length": length}
     if probe.self_collect_every is not None:
         from bati.online import OnlineError, SelfCollector
 
@@ -101,12 +109,9 @@ def run_probe(run_dir: Path, probe: Probe, rule: str | None = None) -> dict:
         except OnlineError as err:
             raise ProbeError(str(err)) from err
         collected = collector.run(states, keys, seeds)
-        out.update(collected.summary(), train_tasks=data.train_tasks, test_tasks=data.test_tasks,
-                   **code_record(), wall_time_s=round(time.perf_counter() - start, 2))
-        atomic_save_npz(path.with_name(f"{probe.name}-latents.npz"), final=collected.latents[0],
-                        prior=collected.prior_latents[0], reference=collected.reference[0])
-        atomic_write_json(path, out)
-        return out
+        atomic_save_npz(latents_path, final=collected.latents[0], prior=collected.prior_latents[0],
+                        reference=collected.reference[0])
+        return {**out, **collected.summary(), "train_tasks": data.train_tasks, "test_tasks": data.test_tasks}
     results = evaluator.evaluate_runs(states, keys, seeds)
     for source in evaluator.sources:
         returns = np.array([r.returns[source].mean() for r in results])
@@ -116,12 +121,8 @@ def run_probe(run_dir: Path, probe: Probe, rule: str | None = None) -> dict:
         out[f"{source}_return_std"] = float(returns.std())
         out[f"{source}_returns"] = returns.round(3).tolist()
         out[f"{source}_inference_error"] = float(errors.mean())
-    out.update(train_tasks=data.train_tasks, test_tasks=data.test_tasks, **code_record(),
-               wall_time_s=round(time.perf_counter() - start, 2))
-    atomic_save_npz(path.with_name(f"{probe.name}-latents.npz"),
-                    **{name: np.asarray(z) for name, z in results[0].latents.items()})
-    atomic_write_json(path, out)
-    return out
+    atomic_save_npz(latents_path, **{name: np.asarray(z) for name, z in results[0].latents.items()})
+    return {**out, "train_tasks": data.train_tasks, "test_tasks": data.test_tasks}
 
 
 def has_task_table(method: str) -> bool:

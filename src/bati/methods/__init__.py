@@ -33,6 +33,23 @@ def training_of(name: str) -> str:
     return METHODS[name].trains_as or name
 
 
+def check_rules(method: str, rules, own_data: bool = False) -> tuple[str, ...]:
+    """The test-time rules to evaluate in runs of `method`, once each: methods that train exactly as it
+    (`training_of`). ValueError (one line) for one that trains otherwise, or for any on your own datasets
+    (`own_data`: no p_train and p_test contexts)."""
+    rules = tuple(dict.fromkeys(rules))
+    for rule in rules:
+        if rule not in METHODS:
+            raise ValueError(f"unknown test-time rule {rule!r}; choose from: {', '.join(METHODS)}")
+        if rule == method or training_of(rule) != training_of(method):
+            raise ValueError(f"{rule!r} is not a test-time rule of a {method!r} run (it does not train exactly "
+                             "as it; bati, bati-r and bati-auto train alike)")
+    if rules and own_data:
+        raise ValueError("test-time rules are evaluated on a family's p_train and p_test contexts, not on your own "
+                         "datasets: train each method on its own")
+    return rules
+
+
 def make_method(name: str, spec: MethodSpec, config=None) -> TaskInference:
     """Method `name` for data described by `spec`, with its hyperparameters `config` (an instance of
     its `Config`; default: the Config's defaults, family-dependent ones from `spec.family`)."""
