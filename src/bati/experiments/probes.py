@@ -25,7 +25,6 @@ to `<run>/likelihood.json`, which reports read (`bati.report.likelihood`).
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -49,18 +48,17 @@ from bati.report.probes import Probe, ProbeError, probe_path, read_probe
 def run_probe(run_dir: Path, probe: Probe, rule: str | None = None) -> dict:
     """Evaluate the run's final checkpoint under `probe` (or read the saved result); see the module. `rule`: with
     the inference of one of the run's test-time rules (bati-r, bati-auto in a bati run), saved as the rule's."""
-    from bati.config import TrainConfig
     from bati.run_dir import open_run
 
     probe = probe.check()
     run_dir = Path(run_dir)
-    try:
-        config = TrainConfig.from_record(json.loads((run_dir / "config.json").read_text())).resolved()
-    except (OSError, ValueError, TypeError) as err:
+    try:  # every config.json names its method and (resolved) steps
+        recorded = read_run_config(run_dir)
+    except (OSError, ValueError) as err:
         raise ProbeError(f"{run_dir} holds no readable run config ({err})") from err
-    rule = None if rule == config.method else rule
+    rule = None if rule == recorded.get("method") else rule
     saved = read_probe(run_dir, probe, rule)
-    if saved is not None and saved.get("step") == config.steps:
+    if saved is not None and saved.get("step") == recorded.get("steps"):
         return saved
     start = time.perf_counter()
     try:
