@@ -364,8 +364,8 @@ class ResolvedConfig(TrainConfig):
     """A config with every default filled in (`TrainConfig.resolve`): the values that run, typed as such; what
     config.json records. `episodes_per_task` and `context_episodes` stay None where the scale's sizes are meant
     (a record names a size only where one was given, so that its digest and run directory stay the same): the
-    run's collection holds them (`Collection.sizes`); `zoo_dir` None is the package's experts, the task ranges
-    and `task_key` None are the defaults they say."""
+    run's collection holds them (`Collection.sizes`). `zoo_dir` None is the package's experts; the task ranges are
+    None on your own data only."""
 
     family: str = field()
     steps: int = field()
