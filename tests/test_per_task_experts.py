@@ -373,6 +373,27 @@ def test_the_default_experts_are_per_task_where_they_were_trained_for_the_tasks(
     assert store.collect_command(point, "quick", 0, 1.0, "data", experts="conditioned").endswith("--experts conditioned")
 
 
+def test_every_output_names_the_data_by_who_collected_it():
+    """A kind's name, except where the family's expert is not a SAC: Kuhn poker's data are its exact best
+    responses' whatever the kind (its one expert), in live tables, reports and the results index alike."""
+    from bati.config import TrainConfig
+    from bati.experiments.index import Study, study_data
+    from bati.experiments.sweep import cell_data
+    from bati.experts.kinds import data_label, experts_label
+    from pathlib import Path
+
+    assert experts_label("per-task") == "per-task experts" and experts_label(None) == "one task-conditioned expert"
+    assert data_label("per-task", "AntDir") == "per-task experts' data"
+    assert data_label("conditioned", get_family("PointGoal")) == "one task-conditioned expert's data"
+    assert data_label("conditioned", "KuhnPoker") == data_label("per-task", "KuhnPoker") == "exact best responses' data"
+    assert data_label("per-task", "NoSuchFamily") == "per-task experts' data"  # not registered here: its kind
+    assert cell_data(TrainConfig(family="KuhnPoker").resolved()) == "exact best responses"
+    assert cell_data(TrainConfig(family="AntDir", experts="conditioned", episodes_per_task=50).resolved()) == \
+        "one task-conditioned expert, 50 episodes per task"
+    assert study_data(Study(Path("cpu/experiments/kuhn"), "", "kuhn", "cpu")) == "exact best responses' data"
+    assert study_data(Study(Path("cpu/experiments/ood-tasks"), "", "ood-tasks", "cpu")) == "per-task experts' data"
+
+
 def test_dpt_labels_take_each_tasks_own_expert():
     """DPT's labels on (B, T) rows of B tasks: each task's per-task expert on its rows (B actors gathered), the
     same as asking row by row; a test task's label is its most similar training task's expert's."""

@@ -554,7 +554,7 @@ def run_collection(
                 _write(family, plan, d, buffers.pop(d.name), noise, out_dir, base_meta)
                 write_s += time.perf_counter() - write_start
 
-    bar = _progress(progress, f"{family.name} data ({experts_label(experts)})")
+    bar = _progress(progress, f"{family.name} data ({experts_label(experts, family)})")
     with bar:
         task_id = bar.add_task("collect", total=len(jobs) * family.record.episode_length)
         if workers == 1:

@@ -74,6 +74,9 @@ class FamilyRecord:
     per_task_expert_steps: int | None = None
     """Environment transitions per task for its per-task SAC experts (App. C.2's one SAC per training
     task: `bati experts train --per-task`); None: the family has none."""
+    expert_name: str = ""
+    """Who collects the family's data, in words, where its expert is not a SAC (KuhnPoker: "exact best
+    responses"): live tables, progress bars and report headings name its data by it, not by an experts kind."""
     unicorn_weight: float = 0.15
     """Table 3: UNICORN's weight of the FOCAL term."""
     club_weight: float = 1.0

@@ -172,6 +172,7 @@ class KuhnPokerFamily(TaskFamily):
         return_unit="hand",
         paper_episodes=500,  # 50,000 hands per task (the paper does not give Kuhn's size)
         expert_steps=None,  # the exact best response (bati.experts.kuhn), computed
+        expert_name="exact best responses",
         version=2,  # opponents near equilibrium (version 1: uniform in [0, 1]^6)
     )
 

@@ -320,7 +320,9 @@ def study_data(study: Study) -> str:
     parts = get_spec(study.experiment).parts if study.experiment else ()
     if len({s for part in parts for s in part.settings if s.startswith("experts=")}) > 1:
         return "both kinds of experts' data"
-    return data_label("conditioned" if CONDITIONED in study.settings else "per-task")
+    families = {family for part in parts for family in part.families}
+    kind = "conditioned" if CONDITIONED in study.settings else "per-task"
+    return data_label(kind, *families) if len(families) == 1 else data_label(kind)
 
 
 _NUMBER = re.compile(r"(?<![\w.])[-+]?\d[\d,]*(?:\.\d+%?|%)(?!\d|\.\d)")

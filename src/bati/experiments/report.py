@@ -443,7 +443,9 @@ def _figures(spec, plan: Plan, runs: list, records: list[dict], groups: list, ou
         by_experts.setdefault(run.settings().get("experts") or "conditioned", []).append(run)
     for kind, kind_runs in sorted(by_experts.items()):
         name = "profile.png" if len(by_experts) == 1 else f"profile-{kind}-experts.png"
-        title = f"{spec.name}: p_test, every family ({plan.scale} scale, {data_label(kind)})"
+        families = {run.family for run in kind_runs}
+        data = data_label(kind, *families) if len(families) == 1 else data_label(kind)
+        title = f"{spec.name}: p_test, every family ({plan.scale} scale, {data})"
         if spec.metric == "p_test_return" and plot_profile(kind_runs, out_dir / name, title):
             figures.append(name)
     if "vs" in spec.figures and plot_vs(spec, records, spec.metric, out_dir / "vs.png"):

@@ -597,7 +597,7 @@ def cell_data(config) -> str:
     """Which data a cell trains on, as the live table and log lines show it: the experts, and the episodes per
     training task where a setting changes them."""
     size = f", {config.episodes_per_task} episodes per task" if config.episodes_per_task is not None else ""
-    return experts_label(config.experts) + size
+    return experts_label(config.experts, config.family) + size
 
 
 class LiveTable:

@@ -35,12 +35,24 @@ def family_experts(family, experts: ExpertsKind | None = None, seed: int = 0, ta
     return "per-task" if has_them else "conditioned"
 
 
-def experts_label(kind: str | None) -> str:
-    """"per-task experts" / "one task-conditioned expert"; a record from before kinds existed: conditioned."""
-    return EXPERT_LABELS.get(kind or "conditioned", str(kind))
+def experts_label(kind: str | None, family=None) -> str:
+    """"per-task experts" / "one task-conditioned expert"; a record from before kinds existed: conditioned.
+    Given `family` (a TaskFamily or its name) whose expert is not a SAC, its record's `expert_name` (KuhnPoker:
+    "exact best responses", whatever the kind)."""
+    return (family is not None and named_expert(family)) or EXPERT_LABELS.get(kind or "conditioned", str(kind))
 
 
-def data_label(kind: str | None) -> str:
-    """"per-task experts' data" / "one task-conditioned expert's data"."""
-    label = experts_label(kind)
+def data_label(kind: str | None, family=None) -> str:
+    """"per-task experts' data" / "one task-conditioned expert's data" (`experts_label`'s, as data)."""
+    label = experts_label(kind, family)
     return f"{label}' data" if label.endswith("s") else f"{label}'s data"
+
+
+def named_expert(family) -> str:
+    """The record's `expert_name` of `family` (a TaskFamily or its name): "" where its experts are SACs."""
+    from bati.envs import FamilyUnavailable, TaskError, as_family
+
+    try:
+        return as_family(family).record.expert_name
+    except (FamilyUnavailable, TaskError):  # a family not installed or registered here: named by its kind
+        return ""

@@ -203,7 +203,7 @@ def group_title(group: Group, extra_keys: list[str]) -> str:
     if not group.own_data:  # your own data has no noise model of ours
         parts.append(f"eps = {_fmt_setting(s['noise'])}" if s.get("noise") is not None else "eps not recorded")
     if not group.own_data:
-        parts.append(data_label(s.get("experts")))
+        parts.append(data_label(s.get("experts"), group.family))
     if group.steps():
         parts.append(f"{group.steps():,} steps")
     data = group.data()

@@ -28,6 +28,7 @@ from pathlib import Path
 
 from bati.envs import MUJOCO_FAMILIES as MUJOCO
 from bati.envs import FamilyUnavailable, get_family
+from bati.experts.kinds import named_expert
 from bati.io import short_commit
 from bati.report import verdicts
 from bati.report.claim_records import CONDITIONED_DATA, SOURCES, Record, Source, gather
@@ -291,6 +292,10 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
     for claim in CLAIMS:
         lines += ["", f"## {claim.name}: {claim.text} ({claim.source}; experiment `{claim.experiment}`)", ""]
         mine = [f for f in findings if f.claim is claim]
+        named = {named_expert(family) for family in claim.families}
+        if "" not in named:
+            lines += [f"{', '.join(claim.families)}: its {', '.join(sorted(named))} collect its data at every scale "
+                      "(it has no SAC experts: the experts the headings below name are the other families')", ""]
         if not mine:
             lines.append("No finished runs at any scale.")
         for f in mine:
