@@ -216,6 +216,18 @@ def test_a_claim_about_every_family_holds_at_most_partly_on_some(tmp_path):
     assert verdicts(tmp_path)["C2"] == ("partly", "cpu")
 
 
+def test_a_verdict_names_the_compared_methods_that_ran_where_some_did_not(tmp_path):
+    """C1 compares BATI with five baselines: decided where FOCAL alone ran beside it, the summary says so."""
+    write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})
+    findings = decide(tmp_path)
+    c1 = next(f for f in findings if f.claim.name == "C1" and f.source is CPU)
+    assert c1.methods == ["bati", "focal"]
+    row = next(line for line in claims_markdown(findings, "bati claims").splitlines() if line.startswith("| C1:"))
+    assert "(1 of 5 compared methods: focal)" in row
+    c5 = next(line for line in claims_markdown(findings, "bati claims").splitlines() if line.startswith("| C5:"))
+    assert "compared methods" not in c5  # BATI's runs alone decide it
+
+
 def test_a_compared_cell_still_rising_over_its_scored_window_is_named_beside_the_verdict(tmp_path):
     """FOCAL's p_test climbs through its last five evaluations on AntDir (+0.4 normalised): the page says the
     verdict rests on a cell that has not converged; BATI's flat curves count as converged."""

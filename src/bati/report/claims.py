@@ -112,6 +112,8 @@ class Finding:
     """Those of `families` where no compared pair has MIN_SEEDS seeds yet: runs, but no ranking."""
     tally: Tally = field(default_factory=Tally)
     """Which comparisons hold, are undecided or go against the claim (what a "partly" rests on)."""
+    methods: list[str] = field(default_factory=list)
+    """The claim's methods with runs at this scale (its subject first, where it has runs; empty: not recorded)."""
 
 
 def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> list[Finding]:
@@ -135,7 +137,8 @@ def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> lis
                                     sorted({short_commit(r.commit) for r in records if r.commit}),
                                     sorted({r.device for r in records if r.device}),
                                     jobs_wall_time((r.job, r.wall_time_s) for r in records), moving, flat,
-                                    [f for f in compared if f not in ranked], tally))
+                                    [f for f in compared if f not in ranked], tally,
+                                    [m for m in claim.methods if any(r.method == m for r in records)]))
     return findings
 
 
@@ -287,6 +290,9 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
         verdict = f"{verdict} ({counts})" if counts else verdict
         if tested and 1 < len(claim.families) and len(tested[-1].families) < len(claim.families):
             scale += f" ({', '.join(tested[-1].families)}: {len(tested[-1].families)} of {len(claim.families)} families)"
+        if tested and claim.needs_baseline and 0 < len(tested[-1].methods) < len(claim.methods):
+            others = [m for m in tested[-1].methods if m != claim.methods[0]]
+            scale += f" ({len(others)} of {len(claim.methods) - 1} compared methods: {', '.join(others) or 'none'})"
         lines.append(f"| {claim.name}: {claim.text} | {claim.source} | **{verdict}** | {scale} | "
                      f"{converged_text(tested[-1], short=True) if tested else '-'} | {every_scale(findings, claim)} |")
     for claim in CLAIMS:
