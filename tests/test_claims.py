@@ -401,6 +401,21 @@ def test_a_partly_names_the_comparisons_that_hold_are_undecided_and_go_against(t
     assert "- decided: holds: focal; undecided: csro; against: recon" in page
 
 
+def test_a_not_reproduced_counts_its_comparisons_so_undecided_does_not_read_as_against(tmp_path):
+    """C7 with BATI above FOCAL and level with Recon: BATI is not shown to be the best ("not reproduced"),
+    and the summary row counts the comparisons: one holds, one is undecided, none goes against."""
+    write_cells(tmp_path, CPU, "kuhn", {("bati", "KuhnPoker"): (HIGH, HIGH),
+                                        ("focal", "KuhnPoker"): (HIGH, LOW),
+                                        ("recon", "KuhnPoker"): (HIGH, HIGH)})
+    c7 = next(f for f in decide(tmp_path) if f.claim.name == "C7" and f.source is CPU)
+    assert c7.verdict == "not reproduced"
+    assert c7.tally.holds == ["focal on KuhnPoker"] and c7.tally.undecided == ["recon on KuhnPoker"]
+    assert not c7.tally.against
+    page = claims_module.claims_markdown([c7], "bati claims")
+    assert "**not reproduced (1 hold, 1 undecided)**" in page
+    assert "cpu: not reproduced (comparisons: 1 hold, 1 undecided; KuhnPoker)" in page
+
+
 def test_only_bati_positive_fails_where_another_method_is_positive_too(tmp_path):
     """C6 checks the sign of every method that ran: FOCAL positive refutes "only BATI" (the page said "partly"),
     CSRO's sign undecided leaves it "partly"; BATI-R and the oracle are shown, never counted."""

@@ -48,6 +48,7 @@ from bati.report.verdicts import (
 )
 
 
+
 @dataclass(frozen=True)
 class Claim:
     name: str
@@ -114,6 +115,17 @@ class Finding:
     """Which comparisons hold, are undecided or go against the claim (what a "partly" rests on)."""
     methods: list[str] = field(default_factory=list)
     """The claim's methods with runs at this scale (its subject first, where it has runs; empty: not recorded)."""
+
+
+def counted(finding: Finding) -> str:
+    """A verdict's comparisons counted (holds, undecided, against) where the verdict alone would say less: a
+    "partly", and a "not reproduced" whose intervals include chance somewhere (so it does not read as decided
+    against the claim); "" for the others."""
+    tally = finding.tally
+    short_of_against = finding.verdict == "not reproduced" and (tally.holds or tally.undecided)
+    if finding.verdict == "partly" or short_of_against:
+        return tally.counts()
+    return ""
 
 
 def decide(root: Path = Path("."), sources: tuple[Source, ...] = SOURCES) -> list[Finding]:
@@ -245,8 +257,8 @@ def every_scale(findings: list[Finding], claim: Claim) -> str:
         return f"; {count} cell{'s' if count > 1 else ''} still moving" if count else ""
 
     def decided(finding: Finding) -> str:
-        counts = finding.tally.counts()
-        return f"comparisons: {counts}; " if finding.verdict == "partly" and counts else ""
+        counts = counted(finding)
+        return f"comparisons: {counts}; " if counts else ""
 
     return "; ".join(f"{_scale_name(f)}: {f.verdict} ({decided(f)}{coverage(f)}{moving(f)})"
                      for f in _tested(findings, claim)) or "-"
@@ -273,7 +285,9 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
              "record random and expert returns (C6: raw returns, the claim is about their sign). Intervals: "
              f"95% stratified-bootstrap percentile intervals through rliable ({verdicts.REPS:,} replicates, seed 0). A "
              f"ranking is called only with >= {MIN_SEEDS} seeds per method; P(X > Y) decides when its interval "
-             "excludes 1/2. The verdict of a claim is the one at the largest scale that tests it on the paper's data "
+             "excludes 1/2; a verdict short of 'reproduced' counts the comparisons that hold, are undecided "
+             "and go against. The verdict of a claim is the one at the largest scale that tests it on the "
+             "paper's data "
              "(one SAC expert per training task; Kuhn poker: its exact best responses), and where no cells of "
              "those test it yet, on one task-conditioned expert's data (named so). Converged: "
              "the p_test drift over the scored window (the change across the evaluations a run's number averages, "
@@ -286,7 +300,7 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
     for claim in CLAIMS:
         verdict, scale = overall(findings, claim)
         tested = deciding(findings, claim)  # the verdict's own scale
-        counts = tested[-1].tally.counts() if tested and verdict == "partly" else ""
+        counts = counted(tested[-1]) if tested else ""
         verdict = f"{verdict} ({counts})" if counts else verdict
         if tested and 1 < len(claim.families) and len(tested[-1].families) < len(claim.families):
             scale += f" ({', '.join(tested[-1].families)}: {len(tested[-1].families)} of {len(claim.families)} families)"
