@@ -48,7 +48,6 @@ from bati.report.verdicts import (
 )
 
 
-
 @dataclass(frozen=True)
 class Claim:
     name: str
