@@ -416,6 +416,22 @@ def test_a_not_reproduced_counts_its_comparisons_so_undecided_does_not_read_as_a
     assert "cpu: not reproduced (comparisons: 1 hold, 1 undecided; KuhnPoker)" in page
 
 
+def test_kuhn_pokers_headings_name_its_own_data_not_the_sac_experts(tmp_path):
+    """Kuhn poker has no SAC experts: C7's headings name its exact best responses' data at every scale, where the
+    other claims' headings name one SAC expert per training task or the task-conditioned expert."""
+    write_cells(tmp_path, CPU, "kuhn", {("bati", "KuhnPoker"): (HIGH, HIGH), ("focal", "KuhnPoker"): (HIGH, LOW)})
+    write_cells(tmp_path, QUICK, "kuhn", {("bati", "KuhnPoker"): (HIGH, HIGH), ("focal", "KuhnPoker"): (HIGH, LOW)})
+    write_cells(tmp_path, CPU, "main", {("bati", "AntDir"): (HIGH, HIGH), ("focal", "AntDir"): (HIGH, LOW)})
+    findings = decide(tmp_path)
+    page = claims_module.claims_markdown(findings, "bati claims")
+    c7 = page[page.index("## C7"):page.index("## C8")]
+    assert "**cpu (exact best responses' data; 100k steps" in c7
+    assert "**quick (3k steps, 20 episodes per task, exact best responses' data)**" in c7
+    assert "SAC expert per training task" not in c7 and "task-conditioned" not in c7
+    c1 = page[page.index("## C1"):page.index("## C2")]
+    assert "**cpu (the paper's data: one SAC expert per training task, App. C.2; 100k steps" in c1
+
+
 def test_only_bati_positive_fails_where_another_method_is_positive_too(tmp_path):
     """C6 checks the sign of every method that ran: FOCAL positive refutes "only BATI" (the page said "partly"),
     CSRO's sign undecided leaves it "partly"; BATI-R and the oracle are shown, never counted."""

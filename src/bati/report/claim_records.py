@@ -33,24 +33,32 @@ class Source:
     experts: str = ""
     """Keep only the cells of this experts kind (a study of both kinds' data: `experts`)."""
 
+    def heading(self, collectors: str = "") -> str:
+        """The label; for a claim whose families have no SAC experts (`collectors`: the data of their own, e.g.
+        Kuhn poker's "exact best responses' data"), the label with the SAC experts' data named after theirs."""
+        if not collectors:
+            return self.label
+        return self.label.replace(PAPER_DATA, collectors).replace(CONDITIONED_DATA, collectors)
 
+
+PAPER_DATA = "the paper's data: one SAC expert per training task, App. C.2"
 CONDITIONED_DATA = data_label("conditioned")  # "one task-conditioned expert's data"
 """`Source.data` of the task-conditioned expert's cells: they decide a claim only where no cells of the default
 data do (`overall`)."""
 
 SOURCES = (
-    Source("quick (3k steps, 20 episodes per task, one task-conditioned expert's data)", Path("results/quick/experiments"),
+    Source(f"quick (3k steps, 20 episodes per task, {CONDITIONED_DATA})", Path("results/quick/experiments"),
            "quick", (CONDITIONED,), data=CONDITIONED_DATA),
-    Source("12k (4x quick steps, quick data: one task-conditioned expert's)", Path("results/quick/locomotion-12k"), "quick",
+    Source(f"12k (4x quick steps, quick sizes, {CONDITIONED_DATA})", Path("results/quick/locomotion-12k"), "quick",
            ("steps=12000", CONDITIONED), data=CONDITIONED_DATA),
-    Source("cpu (one task-conditioned expert's data at the paper's sizes, 100k steps, batch 16 x 64, IQL 128x128)",
+    Source(f"cpu ({CONDITIONED_DATA} at the paper's sizes, 100k steps, batch 16 x 64, IQL 128x128)",
            Path("results/cpu/experiments"), "cpu", (CONDITIONED,), data=CONDITIONED_DATA),
-    Source("paper (one task-conditioned expert's data at the paper's sizes, 100k steps, batch 16 x 256, IQL 256x256)",
+    Source(f"paper ({CONDITIONED_DATA} at the paper's sizes, 100k steps, batch 16 x 256, IQL 256x256)",
            Path("results/paper/experiments"), "paper", (CONDITIONED,), data=CONDITIONED_DATA),
     # the default data, the paper's (App. C.2): one SAC expert per training task where the family has them
-    Source("cpu (the paper's data: one SAC expert per training task, App. C.2; 100k steps, batch 16 x 64, IQL 128x128)",
+    Source(f"cpu ({PAPER_DATA}; 100k steps, batch 16 x 64, IQL 128x128)",
            Path("results/cpu/experiments"), "cpu"),
-    Source("paper (the paper's data: one SAC expert per training task, App. C.2; 100k steps, batch 16 x 256, "
+    Source(f"paper ({PAPER_DATA}; 100k steps, batch 16 x 256, "
            "IQL 256x256)", Path("results/paper/experiments"), "paper"),
     # HalfCheetahDir's per-task cells on its first experts (40k transitions each, a third of the paper's Oracle)
     Source("cpu, per-task experts of 40k transitions (HalfCheetahDir's first experts, since retrained)",

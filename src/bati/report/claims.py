@@ -28,7 +28,7 @@ from pathlib import Path
 
 from bati.envs import MUJOCO_FAMILIES as MUJOCO
 from bati.envs import FamilyUnavailable, get_family
-from bati.experts.kinds import named_expert
+from bati.experts.kinds import data_label, named_expert
 from bati.io import short_commit
 from bati.report import verdicts
 from bati.report.claim_records import CONDITIONED_DATA, SOURCES, Record, Source, gather
@@ -312,13 +312,14 @@ def claims_markdown(findings: list[Finding], command: str) -> str:
         lines += ["", f"## {claim.name}: {claim.text} ({claim.source}; experiment `{claim.experiment}`)", ""]
         mine = [f for f in findings if f.claim is claim]
         named = {named_expert(family) for family in claim.families}
-        if "" not in named:
-            lines += [f"{', '.join(claim.families)}: its {', '.join(sorted(named))} collect its data at every scale "
-                      "(it has no SAC experts: the experts the headings below name are the other families')", ""]
+        collectors = data_label(None, claim.families[0]) if len(named) == 1 and "" not in named else ""
+        if collectors:
+            lines += [f"{', '.join(claim.families)}: its {named.pop()} collect its data at every scale (it has no "
+                      "SAC experts)", ""]
         if not mine:
             lines.append("No finished runs at any scale.")
         for f in mine:
-            lines.append(f"**{f.source.label}**: {f.verdict} ({f.runs} run(s); commit(s) {', '.join(f.commits) or '?'}; "
+            lines.append(f"**{f.source.heading(collectors)}**: {f.verdict} ({f.runs} run(s); commit(s) {', '.join(f.commits) or '?'}; "
                          f"device(s) {', '.join(f.devices) or '?'}; summed wall time {f.wall_time_s / 60:.1f} min)")
             lines.append("")
             lines += [f"- {line}" for line in f.lines] or ["- (no comparison possible)"]
