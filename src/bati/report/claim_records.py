@@ -58,8 +58,8 @@ SOURCES = (
     # the default data, the paper's (App. C.2): one SAC expert per training task where the family has them
     Source(f"cpu ({PAPER_DATA}; 100k steps, batch 16 x 64, IQL 128x128)",
            Path("results/cpu/experiments"), "cpu"),
-    Source(f"paper ({PAPER_DATA}; 100k steps, batch 16 x 256, "
-           "IQL 256x256)", Path("results/paper/experiments"), "paper"),
+    Source(f"paper ({PAPER_DATA}; 100k steps, batch 16 x 256, IQL 256x256)",
+           Path("results/paper/experiments"), "paper"),
     # HalfCheetahDir's per-task cells on its first experts (40k transitions each, a third of the paper's Oracle)
     Source("cpu, per-task experts of 40k transitions (HalfCheetahDir's first experts, since retrained)",
            Path("results/cpu/experts-40k"), "cpu", data="per-task experts, 40k", reports=(("main", "experts"),),
