@@ -2,6 +2,7 @@
 
 import gzip
 import json
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -13,11 +14,14 @@ from bati.experiments.index import (
     _short_device,
     first_table,
     read_notes,
+    Summary,
     report_folders,
+    shown,
     studies,
     unbacked_numbers,
     with_headline,
 )
+from bati.experts.kinds import CONDITIONED_SETTING
 from bati.io import log_exists, pack_jsonl, read_jsonl
 from bati.report.runs import earlier_sessions_time
 
@@ -60,6 +64,19 @@ def test_pack_rounds_floats_keeps_integers_and_reads_back(tmp_path):
     assert gzip.decompress(packed.read_bytes()).count(b"\n") == 2
     # a resumed run's earlier session (its clock restarted) is still counted from the packed log
     assert earlier_sessions_time(tmp_path) == pytest.approx(12.3)
+
+
+def test_at_one_scale_the_paper_data_study_is_shown_before_the_conditioned_one():
+    def summary(folder, settings, finished):
+        study = Study(Path("results/cpu/experiments") / folder, "q", "main", "cpu", settings, store=True)
+        return Summary(study, finished, 165, (0, 1, 2), [], 0, Counter(), 0.0)
+
+    conditioned = summary("main-conditioned", (CONDITIONED_SETTING,), 157)
+    per_task, few = summary("main", (), 85), summary("main", (), 40)
+    for order in ([conditioned, per_task], [per_task, conditioned]):
+        assert [s.study.report.name for s, _ in shown(order)] == ["main"]
+        assert [s.study.report.name for s in shown(order)[0][1]] == ["main-conditioned"]
+    assert [s.study.report.name for s, _ in shown([few, conditioned])] == ["main-conditioned"]  # under half
 
 
 def test_first_table_takes_the_title_and_the_rows():

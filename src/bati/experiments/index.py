@@ -357,12 +357,14 @@ def _size(study: Study) -> int:
 
 def shown(summaries: list[Summary]) -> list[tuple[Summary, list[Summary]]]:
     """Per experiment (in the experiments' order): its study at the largest scale with at least ENOUGH of its cells
-    finished, and its other studies at that scale or larger (scales' own directories and the 12k one)."""
+    finished (at one scale, the paper's data before one task-conditioned expert's), and its other studies at that
+    scale or larger (scales' own directories and the 12k one)."""
     candidates = [s for s in summaries if s.study.experiment is not None and s.planned
                   and (s.study.store or s.study.report.parent == TWELVE_K)]
     out = []
     for name in SPECS:
-        mine = sorted((s for s in candidates if s.study.experiment == name), key=lambda s: _size(s.study))
+        mine = sorted((s for s in candidates if s.study.experiment == name),
+                      key=lambda s: (_size(s.study), CONDITIONED not in s.study.settings))
         enough = [s for s in mine if s.finished >= ENOUGH * s.planned]
         if enough:  # beside it: the larger scales' studies and the same scale's other settings
             out.append((enough[-1], [s for s in mine if s is not enough[-1] and _size(s.study) >= _size(enough[-1].study)]))
