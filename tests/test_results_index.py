@@ -11,10 +11,10 @@ from bati.cli import main
 from bati.experiments.index import (
     INDEX,
     Study,
+    Summary,
     _short_device,
     first_table,
     read_notes,
-    Summary,
     report_folders,
     shown,
     studies,
