@@ -16,6 +16,7 @@ from bati.experiments.index import (
     first_table,
     read_notes,
     report_folders,
+    score_cell,
     shown,
     studies,
     unbacked_numbers,
@@ -83,6 +84,14 @@ def test_first_table_takes_the_title_and_the_rows():
     report = "# R\n\n- a\n\n**p test return**\n\n| m | x |\n|---|---|\n| bati | 1 |\n\n**second**\n\n| y |\n"
     assert first_table(report) == "**p test return**\n\n| m | x |\n|---|---|\n| bati | 1 |"
     assert first_table("no table") == ""
+
+
+def test_a_headline_cell_gives_an_interval_only_from_three_seeds():
+    assert score_cell([]) == "–"
+    assert score_cell([0.5]) == "0.50 (1 seed)"
+    assert score_cell([0.5, 0.7]) == "0.60 (2 seeds)"
+    cell = score_cell([0.5, 0.6, 0.7])
+    assert cell.startswith("0.60 [") and cell.endswith("]")
 
 
 def test_headline_replaces_only_its_block():

@@ -422,7 +422,6 @@ def headline_markdown(root: Path = Path(".")) -> str:
 
 def _headline_table(source, study: Study, summary: Summary, title: str, root: Path) -> str:
     from bati.report.claim_records import gather
-    from bati.report.stats import iqm_interval
 
     records = [r for r in gather("main", source, root) if r.seed in summary.seeds]
     families = sorted({r.family for r in records})
@@ -434,19 +433,24 @@ def _headline_table(source, study: Study, summary: Summary, title: str, root: Pa
              f"cells{'; not run yet: ' + ', '.join(missing) if missing else ''}; [report]({study.report}/report.md)).",
              "", "| method | " + " | ".join(families) + " |", "|---|" + "---|" * len(families)]
     for method in MAIN_METHODS:
-        cells = []
-        for family in families:
-            scores = [r.p_test for r in records if r.method == method and r.family == family]
-            if not scores:
-                cells.append("–")
-            elif len(scores) < 2:
-                cells.append(f"{scores[0]:.2f} (1 seed)")
-            else:
-                iqm, low, high = iqm_interval([[x] for x in scores])
-                cells.append(f"{iqm:.2f} [{low:.2f}, {high:.2f}]")
+        cells = [score_cell([r.p_test for r in records if r.method == method and r.family == family])
+                 for family in families]
         if any(c != "–" for c in cells):
             lines.append(f"| {method} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def score_cell(scores: list[float]) -> str:
+    """One headline cell: the IQM [95% CI] of the seeds' scores; under MIN_SEEDS seeds their mean and how many."""
+    from bati.report.convergence import MIN_SEEDS
+    from bati.report.stats import iqm_interval
+
+    if not scores:
+        return "–"
+    if len(scores) < MIN_SEEDS:
+        return f"{sum(scores) / len(scores):.2f} ({len(scores)} seed{'s' if len(scores) > 1 else ''})"
+    iqm, low, high = iqm_interval([[x] for x in scores])
+    return f"{iqm:.2f} [{low:.2f}, {high:.2f}]"
 
 
 def with_headline(readme: str, headline: str) -> str:
