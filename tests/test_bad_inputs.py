@@ -38,6 +38,9 @@ from bati.data import store
 from bati.data.batch import load_family_data
 from bati.io import LOCK_NAME, hold_lock
 
+# its tests share module fixtures that take seconds to build: one worker builds them once (--dist loadgroup)
+pytestmark = pytest.mark.xdist_group("bad_inputs")
+
 FAMILY = "PointGoal"
 TINY = {"n_episodes": 2, "n_context_episodes": 1}
 COLLECTION = "PointGoal/quick-seed0-eps1-per-task-experts"  # the default collectors: per-task experts

@@ -27,6 +27,9 @@ from bati.envs import get_family
 from bati.errors import BatiWarning
 from bati.io import git_commit
 
+# its tests share module fixtures that take seconds to build: one worker builds them once (--dist loadgroup)
+pytestmark = pytest.mark.xdist_group("data")
+
 FAMILY = "PointGoal"
 SMALL = {"n_episodes": 5, "n_context_episodes": 2}
 TINY = {"n_episodes": 2, "n_context_episodes": 1}

@@ -13,6 +13,9 @@ from bati.experts import load
 from bati.experts.card import write_card
 from bati.experts.train import ExpertTrainConfig, train_expert
 
+# its tests share module fixtures that take seconds to build: one worker builds them once (--dist loadgroup)
+pytestmark = pytest.mark.xdist_group("experts")
+
 SMALL = dict(num_envs=2, start_steps=200, eval_every=400, checkpoint_every=400, eval_tasks=2)
 
 

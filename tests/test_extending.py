@@ -19,6 +19,9 @@ from bati.methods import METHODS
 from bati.rl.iql import IQLConfig
 from bati.train import train
 
+# its tests share module fixtures that take seconds to build: one worker builds them once (--dist loadgroup)
+pytestmark = pytest.mark.xdist_group("extending")
+
 
 @pytest.fixture(scope="module")
 def line_goal():

@@ -22,6 +22,9 @@ from bati.cli import main
 from bati.envs import FAMILY_NAMES, EPISODE_LENGTH, FamilyUnavailable, TaskError, get_family
 from bati.methods import METHODS
 
+# its tests share module fixtures that take seconds to build: one worker builds them once (--dist loadgroup)
+pytestmark = pytest.mark.xdist_group("kuhn")
+
 try:
     import pyspiel
 except ImportError:

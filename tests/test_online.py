@@ -16,6 +16,9 @@ from bati.evaluate import Evaluator
 from bati.online import OnlineError, SelfCollector, reinference_steps, window_indices
 from bati.report.probes import Probe, ProbeError
 
+# its tests share module fixtures that take seconds to build: one worker builds them once (--dist loadgroup)
+pytestmark = pytest.mark.xdist_group("online")
+
 STEP = 0.1  # PointGoal's position change per step at full action
 LENGTH = 40  # episode length of these tests (the env's limit is 200)
 RUNS = 2

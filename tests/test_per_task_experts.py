@@ -19,6 +19,9 @@ from bati.experts.per_task import PER_TASK_DIR, PerTaskExperts, training_tasks
 from bati.experts.sac import SACConfig
 from bati.experts.train import ExpertTrainConfig, train_expert
 
+# its tests share module fixtures that take seconds to build: one worker builds them once (--dist loadgroup)
+pytestmark = pytest.mark.xdist_group("per_task_experts")
+
 TINY = dict(per_task=True, total_steps=400, start_steps=200, update_every=50, eval_every=400,
             checkpoint_every=200, sac=SACConfig(hidden_dims=(16, 16), batch_size=16))
 
